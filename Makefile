@@ -1,0 +1,45 @@
+# Entry points: `make demo`, `make test`, `make bench` (see README.md).
+
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+# Keep any ROS traffic from tests, demo and benchmarks on this host.
+ROS_DOMAIN_ID ?= 42
+ROS_ENV := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID=$(ROS_DOMAIN_ID)
+
+.PHONY: venv lint test demo bench clean
+
+venv: $(STAMP)
+
+$(STAMP): requirements.txt setup.py setup.cfg pyproject.toml
+	rm -f $(STAMP)
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -r requirements.txt
+	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
+	touch $(STAMP)
+
+lint: venv
+	$(BIN)/ruff check jointfit_core jointfit_ros test bench
+	$(BIN)/mypy jointfit_core
+
+test: venv lint
+	$(ROS_ENV) $(BIN)/python -m pytest
+
+demo: venv
+	$(ROS_ENV) $(BIN)/python -m jointfit_core.demo
+
+bench: venv
+	shopt -s nullglob; \
+	for f in bench/*.py; do \
+		case "$$(basename "$$f")" in _*) continue ;; esac; \
+		echo "== $$f"; \
+		$(ROS_ENV) $(BIN)/python "$$f" || exit 1; \
+	done
+
+clean:
+	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache .hypothesis build *.egg-info
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +

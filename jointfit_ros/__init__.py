@@ -1,0 +1,1 @@
+"""ROS 2 adapter for jointfit_core; the node arrives with the node issue."""
