@@ -1,0 +1,125 @@
+"""Input checks shared by the estimators.
+
+Each helper converts to float64, checks the shape, then the numbers, and raises
+:class:`~jointfit_core.errors.InputError` with a message that says what was
+expected and what came.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import InputError
+
+__all__ = ["check_markers", "check_frame", "check_noise_std", "check_vector3", "valid_mask"]
+
+
+def check_markers(
+    markers: ArrayLike, *, name: str = "markers", min_markers: int = 1, min_frames: int = 1
+) -> NDArray[np.float64]:
+    """Return ``markers`` as a float64 array of shape (N, P, 3), NaN for missing.
+
+    Parameters
+    ----------
+    markers : array_like, shape (N, P, 3)
+        Marker positions, time first, then marker, then xyz. NaN (in any
+        coordinate) marks a missing marker in that frame; the whole xyz triple
+        is then treated as missing. ``inf`` is rejected.
+    name : str
+        Name used in error messages.
+    min_markers, min_frames : int
+        The least number of markers (P) and of frames (N) accepted.
+
+    Returns
+    -------
+    ndarray, shape (N, P, 3), float64
+        A copy in which a marker with any NaN coordinate has all three NaN.
+
+    Raises
+    ------
+    InputError
+        Wrong number of dimensions, last axis not 3, too few markers or
+        frames, infinite values, or no valid sample at all.
+    """
+    try:
+        arr = np.array(markers, dtype=np.float64, copy=True)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: expected a numeric array of shape (N, P, 3), got {type(markers).__name__}: {exc}") from None
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise InputError(f"{name}: expected shape (N, P, 3) (frames, markers, xyz), got shape {arr.shape}")
+    n_frames, n_markers, _ = arr.shape
+    if n_markers < min_markers:
+        raise InputError(f"{name}: expected at least {min_markers} marker(s) (axis 1), got {n_markers}")
+    if n_frames < min_frames:
+        raise InputError(f"{name}: expected at least {min_frames} frame(s) (axis 0), got {n_frames}")
+    if np.isinf(arr).any():
+        raise InputError(f"{name}: contains inf; use NaN for missing markers")
+    missing = np.isnan(arr).any(axis=2)
+    arr[missing] = np.nan
+    if missing.all():
+        raise InputError(f"{name}: every sample is NaN (no valid marker in any frame)")
+    return arr
+
+
+def check_frame(frame: ArrayLike, n_markers: int | None = None, *, name: str = "frame") -> NDArray[np.float64]:
+    """Return one frame as float64 of shape (P, 3), NaN for missing.
+
+    Parameters
+    ----------
+    frame : array_like, shape (P, 3)
+        Marker positions of one frame; NaN marks a missing marker.
+    n_markers : int, optional
+        Expected P; checked when given.
+
+    Raises
+    ------
+    InputError
+        Wrong shape, wrong marker count or infinite values.
+    """
+    try:
+        arr = np.array(frame, dtype=np.float64, copy=True)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: expected a numeric array of shape (P, 3), got {type(frame).__name__}: {exc}") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name}: expected shape (P, 3), got shape {arr.shape}")
+    if n_markers is not None and arr.shape[0] != n_markers:
+        raise InputError(f"{name}: expected {n_markers} markers, got {arr.shape[0]}")
+    if np.isinf(arr).any():
+        raise InputError(f"{name}: contains inf; use NaN for missing markers")
+    arr[np.isnan(arr).any(axis=1)] = np.nan
+    return arr
+
+
+def check_noise_std(noise_std: float | None) -> float | None:
+    """Return ``noise_std`` as a float (or None) after checking it is finite and >= 0."""
+    if noise_std is None:
+        return None
+    try:
+        value = float(noise_std)
+    except (TypeError, ValueError):
+        raise InputError(f"noise_std: expected None or a number >= 0, got {noise_std!r}") from None
+    if not np.isfinite(value) or value < 0.0:
+        raise InputError(f"noise_std: expected None or a finite number >= 0, got {value!r}")
+    return value
+
+
+def check_vector3(vector: ArrayLike, *, name: str, unit: bool = False) -> NDArray[np.float64]:
+    """Return a finite float64 3-vector (normalised when ``unit``)."""
+    try:
+        arr = np.array(vector, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected a 3-vector, got {vector!r}") from None
+    if arr.shape != (3,) or not np.isfinite(arr).all():
+        raise InputError(f"{name}: expected a finite 3-vector, got {vector!r}")
+    if unit:
+        norm = float(np.linalg.norm(arr))
+        if norm == 0.0:
+            raise InputError(f"{name}: expected a non-zero direction, got {vector!r}")
+        arr = arr / norm
+    return arr
+
+
+def valid_mask(markers: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Return the (N, P) mask of markers present (not NaN) in each frame."""
+    return np.asarray(~np.isnan(markers).any(axis=-1), dtype=bool)
