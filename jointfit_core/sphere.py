@@ -1,0 +1,280 @@
+"""Centre of rotation of markers moving on concentric spheres (ball joint).
+
+Gamage & Lasenby (2002) eq. (5), computed from per-marker sufficient
+statistics (:mod:`jointfit_core.moments`), with the noise bias of ``A`` and
+``b`` removed in the manner of Halvorsen (2003) and a linearised (sandwich)
+covariance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .checks import check_markers, check_noise_std
+from .errors import InputError, NotIdentifiableError
+from .moments import CentralMoments, MarkerMoments, central_moments, moments_from_markers
+from .results import CentreFit
+
+__all__ = [
+    "fit_centre",
+    "centre_from_moments",
+    "NOISE_SNR_MIN",
+    "SD_REL_MAX",
+    "SINGULAR_REL",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: A direction of ``A`` whose signal spread is below this multiple of the
+#: noise spread is "not excited" by the motion (the compensation is also
+#: limited there, so that it stays stable).
+NOISE_SNR_MIN = 3.0
+#: A centre whose largest standard deviation exceeds this fraction of the
+#: median marker radius is flagged as not identifiable.
+SD_REL_MAX = 0.1
+#: Eigenvalues of ``A`` below this fraction of the largest count as zero.
+SINGULAR_REL = 1e-10
+#: Bias compensation never removes more than this fraction of an eigenvalue.
+_MAX_COMPENSATION = 0.5
+#: Fixed-point iterations between the noise estimate and the compensated centre.
+_NOISE_ITERATIONS = 4
+
+
+def fit_centre(markers: ArrayLike, *, noise_std: float | None = None) -> CentreFit:
+    """Fit the centre of rotation of markers that move on concentric spheres.
+
+    Parameters
+    ----------
+    markers : array_like, shape (N, P, 3)
+        Marker positions (any length unit; results are in the same unit) in a
+        frame in which the centre is fixed (e.g. child markers expressed in
+        the parent segment's frame). NaN marks a missing marker; each marker
+        uses only its valid frames.
+    noise_std : float, optional
+        Standard deviation of the marker noise per coordinate, input units.
+        ``None`` (default) estimates it from the residuals and removes the
+        noise bias; ``0`` gives the plain Gamage-Lasenby solution; a positive
+        value removes the bias of that noise level.
+
+    Returns
+    -------
+    CentreFit
+        ``centre``, ``cov``, ``radii`` and the diagnostics. When the motion
+        only weakly determines the centre, ``identifiable`` is False and
+        ``reason`` says which movement is missing.
+
+    Raises
+    ------
+    InputError
+        Wrong shape, infinite values, all-NaN input, or fewer valid samples
+        than ``P + 4`` (no residual degree of freedom is left to judge the
+        fit).
+    NotIdentifiableError
+        The motion cannot determine the centre at all (``A`` is singular:
+        markers that did not move, or noise-free rotation about one axis).
+
+    See Also
+    --------
+    centre_from_moments : the same fit from running sums (used online).
+
+    Notes
+    -----
+    Implements eq. (5) of Gamage & Lasenby (2002), ``A m = b`` with, per
+    marker p and its valid frames k (the sums weighted by frame, so that the
+    solution minimises their cost eq. (1) also with missing samples)::
+
+        A = 2 sum_p sum_k (v_pk - vbar_p)(v_pk - vbar_p)^T
+        b = sum_p sum_k (v_pk - vbar_p) |v_pk|^2
+
+    **Bias compensation** (Halvorsen 2003): isotropic noise of variance
+    ``s2`` per coordinate adds ``2 s2 (n_p - 1) I`` to the expected ``A_p``
+    and ``2 s2 (n_p - 1) vbar_p`` to ``b_p``; both are subtracted. ``s2`` is
+    estimated from the algebraic residuals ``d = |v - m|^2 - r_p^2`` of the
+    plain solution, whose expectation is ``sum_p (n_p - 1)(4 s2 r_p^2 - 6
+    s2^2)`` (corrected for the 3 fitted coordinates). To stay stable when
+    ``A`` is poorly conditioned, the compensation removes at most half of
+    any eigenvalue of ``A``; such directions are flagged as not excited.
+
+    **Covariance** (sandwich / delta method): the estimating equation
+    ``g(m) = A_c m - b_c`` has, to first order in the noise, variance
+    ``2 s2 sum_p R_p^2 A_p`` (``R_p`` the sphere radius, ``A_p`` the
+    noise-free scatter of marker p), so ``cov = A_c^-1 (2 s2 sum_p R_p^2 A_p)
+    A_c^-1``, plus the term of the estimated ``s2`` when it is used for the
+    compensation. ``s2`` in the covariance is always the residual estimate,
+    so model error (skin motion) widens it. The covariance scales with
+    ``s2`` and, for a fixed range of motion, as ``1 / N``; it grows as the
+    range of motion shrinks (``A`` scales with the square of the arc
+    length).
+    """
+    arr = check_markers(markers, name="markers")
+    return centre_from_moments(moments_from_markers(arr), noise_std=noise_std)
+
+
+def _sphere_residuals(cm: CentralMoments, centre_rel: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per-marker residual sums and mean squared distances at a centre.
+
+    Returns ``(ss_p, r2_p)``: the sum of squared algebraic residuals
+    ``(|v - m|^2 - r_p^2)^2`` with ``r_p^2`` the mean of ``|v - m|^2`` (eq. 2),
+    and that ``r_p^2``, for each marker.
+    """
+    u = cm.used
+    c = centre_rel[None, :] - cm.mean  # centre relative to each marker's mean
+    tr2 = np.einsum("pii->p", cm.m2)
+    safe_n = np.where(u, cm.n, 1.0)
+    ss_p = cm.m4 - tr2 * tr2 / safe_n - 4.0 * np.einsum("pi,pi->p", c, cm.m3)
+    ss_p = ss_p + 4.0 * np.einsum("pi,pij,pj->p", c, cm.m2, c)
+    ss_p = np.where(u, np.maximum(ss_p, 0.0), 0.0)
+    r2 = np.where(u, tr2 / safe_n + np.einsum("pi,pi->p", c, c), 0.0)
+    return ss_p, r2
+
+
+def _noise_from_residuals(cm: CentralMoments, ss_min: float, r2: FloatArray, n_fitted: int) -> float:
+    """Noise variance per coordinate from the minimal algebraic residual sum.
+
+    Solves ``6 D s2^2 - 4 T s2 + SS D / (D - n_fitted) = 0`` for its smaller
+    root, where ``D = sum_p (n_p - 1)`` and ``T = sum_p (n_p - 1) r_p^2``:
+    to first order the residual ``d = 2 (u - m).e + |e|^2 - mean`` has
+    variance ``4 s2 R^2 + 6 s2^2`` with ``R^2 = r^2 - 3 s2``.
+    """
+    dof_total = float(cm.dof[cm.used].sum())
+    t_sum = float((cm.dof * r2)[cm.used].sum())
+    if t_sum <= 0.0:
+        return 0.0
+    ss = ss_min * dof_total / (dof_total - n_fitted)
+    disc = 16.0 * t_sum * t_sum - 24.0 * dof_total * ss
+    s2 = (4.0 * t_sum - np.sqrt(max(disc, 0.0))) / (12.0 * dof_total)
+    return max(float(s2), 0.0)
+
+
+def _weak_direction_reason(direction: FloatArray, what: str) -> str:
+    d = np.round(direction * np.sign(direction[np.argmax(np.abs(direction))]), 2)
+    return (
+        f"{what}: the motion is nearly a rotation about a single axis (direction ~ {d.tolist()}), "
+        "which leaves the centre undetermined along that axis; also rotate the segment about a second, "
+        "different axis (e.g. abduction as well as flexion)"
+    )
+
+
+def centre_from_moments(mom: MarkerMoments, *, noise_std: float | None = None) -> CentreFit:
+    """Centre of rotation from per-marker sufficient statistics.
+
+    Parameters
+    ----------
+    mom : MarkerMoments
+        Running sums of the marker positions (see
+        :func:`jointfit_core.moments.moments_from_markers`).
+    noise_std : float, optional
+        As in :func:`fit_centre`.
+
+    Returns
+    -------
+    CentreFit
+        Identical to :func:`fit_centre` on the samples the sums were built
+        from.
+
+    Raises
+    ------
+    InputError, NotIdentifiableError
+        As in :func:`fit_centre`.
+    """
+    sigma_given = check_noise_std(noise_std)
+    cm = central_moments(mom)
+    used = cm.used
+    if not used.any():
+        raise InputError("markers: no marker has two or more valid frames; a centre needs motion")
+    dof_total = float(cm.dof[used].sum())
+    if dof_total < 4.0:
+        raise InputError(
+            f"markers: too few valid samples: need at least P + 4 (here {int(used.sum()) + 4}) "
+            f"to fit a centre and judge it, got {round(float(cm.n[used].sum()))}"
+        )
+    a_p = 2.0 * cm.m2
+    a_mat = a_p.sum(axis=0)
+    b_vec = (cm.m3 + np.einsum("pij,pj->pi", a_p, cm.mean)).sum(axis=0)
+    lam, vecs = np.linalg.eigh(a_mat)
+    if lam[-1] <= 0.0:
+        raise NotIdentifiableError("markers: the markers did not move, so the centre is undetermined")
+    if lam[0] <= SINGULAR_REL * lam[-1]:
+        raise NotIdentifiableError(_weak_direction_reason(vecs[:, 0], "A is singular"))
+
+    centre_plain = vecs @ ((vecs.T @ b_vec) / lam)
+    # The plain solution minimises the algebraic residuals (eq. 1); the noise
+    # estimate uses that minimum, with radii from the compensated centre
+    # (the plain centre is pulled toward the markers, shrinking the radii).
+    ss_min = float(_sphere_residuals(cm, centre_plain)[0].sum())
+    dof_mean = np.einsum("p,pi->i", cm.dof, cm.mean)
+    centre_rel = centre_plain
+    lam_j = lam
+    s2_est = 0.0
+    for _ in range(_NOISE_ITERATIONS):
+        s2_est = _noise_from_residuals(cm, ss_min, _sphere_residuals(cm, centre_rel)[1], 3)
+        s2_comp = s2_est if sigma_given is None else sigma_given**2
+        if s2_comp <= 0.0:
+            break
+        lam_j = np.maximum(lam - 2.0 * s2_comp * dof_total, _MAX_COMPENSATION * lam)
+        centre_rel = vecs @ ((vecs.T @ (b_vec - 2.0 * s2_comp * dof_mean)) / lam_j)
+    s2_comp = s2_est if sigma_given is None else sigma_given**2
+    compensated = s2_comp > 0.0
+
+    # Radii and residuals at the final centre.
+    ss_p, r2 = _sphere_residuals(cm, centre_rel)
+    used_r2 = used & (r2 > 0)
+    radius2 = np.maximum(r2 - 3.0 * s2_comp, 0.0) if compensated else r2
+    radii = np.where(used, np.sqrt(radius2), np.nan)
+    radial_ss = np.where(used_r2, ss_p / (4.0 * np.where(used_r2, r2, 1.0)), 0.0)
+    rms = float(np.sqrt(radial_ss.sum() / max(float(cm.n[used].sum()), 1.0)))
+
+    # Sandwich covariance with the residual noise estimate. To second order
+    # the estimating equation's noise has variance
+    # 4 s2 sum R^2 x x^T + 4 s2^2 sum (R^2 I + (v - m)(v - m)^T); the
+    # observed scatter A_p already carries the 4 s2^2 R^2 I part.
+    c = centre_rel[None, :] - cm.mean
+    big_r2 = np.where(used, np.maximum(r2 - 3.0 * s2_est, 0.0), 0.0)
+    meat = 2.0 * s2_est * np.einsum("p,pij->ij", big_r2, a_p)
+    spread = cm.m2.sum(axis=0) + np.einsum("p,pi,pj->ij", cm.n * used, c, c)
+    meat = meat + 4.0 * s2_est**2 * spread
+    if compensated and sigma_given is None:
+        k = -2.0 * (dof_total * centre_rel - dof_mean)
+        meat = meat + (2.0 * s2_est**2 / (dof_total - 3.0)) * np.outer(k, k)
+    j_inv = (vecs / lam_j) @ vecs.T
+    cov = j_inv @ meat @ j_inv
+    cov = 0.5 * (cov + cov.T)
+
+    identifiable, reason = _verdict(lam, vecs, s2_est, dof_total, cov, radii[used])
+    return CentreFit(
+        centre=centre_rel + mom.ref,
+        cov=cov,
+        radii=radii,
+        rms=rms,
+        n_frames=round(mom.n_frames),
+        identifiable=identifiable,
+        reason=reason,
+        noise_std=float(np.sqrt(s2_comp if sigma_given is not None else s2_est)),
+        bias_compensated=bool(compensated),
+    )
+
+
+def _verdict(
+    lam: FloatArray, vecs: FloatArray, s2: float, dof_total: float, cov: FloatArray, radii: FloatArray
+) -> tuple[bool, str]:
+    """Identifiability verdict of a centre fit and a reason a person can act on."""
+    noise = 2.0 * s2 * dof_total
+    snr = (lam - noise) / noise if noise > 0 else np.full(3, np.inf)
+    weak = np.flatnonzero(snr < NOISE_SNR_MIN)
+    sd_max = float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
+    radius = float(np.median(radii)) if radii.size else 0.0
+    if weak.size >= 2:
+        return False, (
+            "range of motion too small: the marker motion is hardly larger than the noise in two or more "
+            "directions; move the segment through a larger range, in at least two planes"
+        )
+    if weak.size == 1:
+        return False, _weak_direction_reason(vecs[:, int(weak[0])], "centre poorly determined")
+    if radius > 0 and sd_max > SD_REL_MAX * radius:
+        return False, (
+            f"range of motion too small: the centre's standard deviation ({sd_max:.3g}) exceeds "
+            f"{SD_REL_MAX:.0%} of the median marker radius ({radius:.3g}); move through a larger range "
+            "or record more frames"
+        )
+    return True, ""

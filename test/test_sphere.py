@@ -1,0 +1,197 @@
+"""fit_centre: Gamage & Lasenby eq. (5) with bias compensation and covariance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import mahalanobis, mc_band, random_rigid, transform
+
+from jointfit_core import InputError, NotIdentifiableError, fit_centre
+from jointfit_core.synthetic import gl_axis_setup, gl_random_walk_setup
+
+
+def naive_gl_centre(markers: np.ndarray) -> np.ndarray:
+    """Eq. (5) written out per marker and per frame, as a reference."""
+    a_mat = np.zeros((3, 3))
+    b_vec = np.zeros(3)
+    for p in range(markers.shape[1]):
+        v = markers[:, p][~np.isnan(markers[:, p]).any(axis=1)]
+        vbar = v.mean(axis=0)
+        for vk in v:
+            a_mat += 2.0 * np.outer(vk - vbar, vk - vbar)
+            b_vec += (vk - vbar) * (vk @ vk)
+    return np.linalg.solve(a_mat, b_vec)
+
+
+def test_noise_free_recovers_centre_exactly() -> None:
+    sim = gl_random_walk_setup(np.random.default_rng(0), 0.0, centre=np.array([1500.0, -800.0, 900.0]))
+    for noise_std in (None, 0.0):
+        fit = fit_centre(sim.clean, noise_std=noise_std)
+        np.testing.assert_allclose(fit.centre, sim.centre, atol=1e-6)
+        np.testing.assert_allclose(fit.radii, np.linalg.norm(sim.clean[0] - sim.centre, axis=1), rtol=1e-9)
+        assert fit.identifiable and fit.reason == ""
+        assert fit.rms < 1e-6
+
+
+def test_plain_solution_is_equation_5() -> None:
+    rng = np.random.default_rng(1)
+    sim = gl_random_walk_setup(rng, 2.0)
+    markers = sim.markers.copy()
+    markers[rng.random(markers.shape[:2]) < 0.1] = np.nan  # each marker uses only its valid frames
+    fit = fit_centre(markers, noise_std=0.0)
+    assert not fit.bias_compensated
+    np.testing.assert_allclose(fit.centre, naive_gl_centre(markers), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("noise", [0.5, 2.0])
+def test_covariance_calibrated_random_walk(noise: float) -> None:
+    """Gamage & Lasenby's 4-marker random-walk set-up, 100 frames, 200 trials."""
+    rng = np.random.default_rng(10 + int(noise * 10))
+    e3 = []
+    flagged = 0
+    for _ in range(220):
+        sim = gl_random_walk_setup(rng, noise)
+        fit = fit_centre(sim.markers)
+        if not fit.identifiable:  # a walk that stayed near one plane: the verdict says so
+            flagged += 1
+            continue
+        e3.append(mahalanobis(fit.centre - sim.centre, fit.cov))
+    assert flagged <= 11, f"{flagged} of 220 random walks flagged"
+    assert len(e3) >= 200
+    mc_band(e3)
+
+
+def test_bias_compensation_halves_plain_error_at_2mm() -> None:
+    rng = np.random.default_rng(20)
+    err_plain, err_comp, sigma = [], [], []
+    for _ in range(200):
+        sim = gl_random_walk_setup(rng, 2.0)
+        err_plain.append(np.linalg.norm(fit_centre(sim.markers, noise_std=0.0).centre - sim.centre))
+        fit = fit_centre(sim.markers)
+        err_comp.append(np.linalg.norm(fit.centre - sim.centre))
+        sigma.append(fit.noise_std)
+    assert np.mean(err_comp) < 0.5 * np.mean(err_plain), (np.mean(err_comp), np.mean(err_plain))
+    assert abs(np.mean(sigma) - 2.0) < 0.1  # the residual noise estimate is unbiased
+
+
+@pytest.mark.parametrize("noise", [0.05, 0.5])
+def test_compensation_never_worse_when_well_conditioned(noise: float) -> None:
+    """Low noise and a wide range: compensated error is no larger than plain."""
+    rng = np.random.default_rng(30)
+    plain, comp = [], []
+    for _ in range(200):
+        sim = gl_random_walk_setup(rng, noise, step_deg=2.0)
+        plain.append(np.linalg.norm(fit_centre(sim.markers, noise_std=0.0).centre - sim.centre))
+        comp.append(np.linalg.norm(fit_centre(sim.markers).centre - sim.centre))
+    assert np.mean(comp) <= np.mean(plain) * 1.02
+
+
+def test_known_noise_std_is_used() -> None:
+    sim = gl_random_walk_setup(np.random.default_rng(4), 2.0)
+    fit = fit_centre(sim.markers, noise_std=2.0)
+    assert fit.bias_compensated and fit.noise_std == 2.0
+    assert np.linalg.norm(fit.centre - sim.centre) < 4.0 * np.sqrt(np.trace(fit.cov))
+
+
+def test_rigid_transform_equivariance() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        sim = gl_random_walk_setup(rng, 1.0)
+        base = fit_centre(sim.markers)
+        rot, trans = random_rigid(rng, 3000.0)
+        moved = fit_centre(transform(sim.markers, rot, trans))
+        np.testing.assert_allclose(moved.centre, rot @ base.centre + trans, atol=1e-6)
+        np.testing.assert_allclose(moved.cov, rot @ base.cov @ rot.T, rtol=1e-6, atol=1e-9 * np.abs(base.cov).max())
+        np.testing.assert_allclose(moved.radii, base.radii, rtol=1e-8)
+        assert moved.noise_std == pytest.approx(base.noise_std, rel=1e-8)
+
+
+def test_unit_scaling_mm_to_m() -> None:
+    sim = gl_random_walk_setup(np.random.default_rng(6), 2.0, centre=np.array([2000.0, 500.0, 1000.0]))
+    mm = fit_centre(sim.markers)
+    m = fit_centre(sim.markers * 1e-3)
+    np.testing.assert_allclose(m.centre, mm.centre * 1e-3, rtol=1e-9)
+    np.testing.assert_allclose(m.cov, mm.cov * 1e-6, rtol=1e-6)
+    np.testing.assert_allclose(m.radii, mm.radii * 1e-3, rtol=1e-9)
+    assert m.rms == pytest.approx(mm.rms * 1e-3, rel=1e-6)
+    assert (m.identifiable, m.reason) == (mm.identifiable, mm.reason)
+
+
+def test_marker_order_invariance() -> None:
+    rng = np.random.default_rng(7)
+    sim = gl_random_walk_setup(rng, 1.0)
+    order = rng.permutation(sim.markers.shape[1])
+    base = fit_centre(sim.markers)
+    perm = fit_centre(sim.markers[:, order])
+    np.testing.assert_allclose(perm.centre, base.centre, rtol=1e-10)
+    np.testing.assert_allclose(perm.cov, base.cov, rtol=1e-8)
+    np.testing.assert_allclose(perm.radii, base.radii[order], rtol=1e-10)
+
+
+def test_nan_frames_are_ignored() -> None:
+    rng = np.random.default_rng(8)
+    sim = gl_random_walk_setup(rng, 1.0)
+    base = fit_centre(sim.markers)
+    padded = np.concatenate([sim.markers, np.full((7, 4, 3), np.nan)])
+    padded = padded[rng.permutation(len(padded))]
+    same = fit_centre(padded)
+    np.testing.assert_allclose(same.centre, base.centre, rtol=1e-10)
+    assert same.n_frames == base.n_frames == 100
+    occluded = sim.markers.copy()
+    occluded[rng.random(occluded.shape[:2]) < 0.2] = np.nan
+    occluded[3, 1, 2] = np.nan  # a single NaN coordinate drops the whole marker
+    fit = fit_centre(occluded)
+    assert mahalanobis(fit.centre - sim.centre, fit.cov) < 16.0
+
+
+def test_single_axis_rotation_is_flagged_with_reason() -> None:
+    sim = gl_axis_setup(np.random.default_rng(9), 0.5)
+    fit = fit_centre(sim.markers)
+    assert not fit.identifiable
+    assert "single axis" in fit.reason and "second" in fit.reason
+    with pytest.raises(NotIdentifiableError, match="single axis"):
+        fit_centre(sim.clean)
+
+
+def test_small_range_of_motion_is_flagged() -> None:
+    sim = gl_random_walk_setup(np.random.default_rng(11), 2.0, step_deg=0.05)
+    fit = fit_centre(sim.markers)
+    assert not fit.identifiable
+    assert "range of motion" in fit.reason or "single axis" in fit.reason
+
+
+def test_static_markers_raise() -> None:
+    markers = np.tile(np.array([[0.0, 0.0, 100.0], [0.0, 50.0, 0.0]]), (20, 1, 1))
+    with pytest.raises(NotIdentifiableError, match="did not move"):
+        fit_centre(markers)
+
+
+@pytest.mark.parametrize(
+    ("markers", "match"),
+    [
+        (np.zeros((10, 3)), r"shape \(N, P, 3\).*\(10, 3\)"),
+        (np.zeros((10, 2, 2)), r"\(10, 2, 2\)"),
+        (np.full((10, 2, 3), np.nan), "every sample is NaN"),
+        (np.ones((3, 1, 3)), "too few valid samples"),
+        (np.array([[[np.inf, 0.0, 0.0]]]), "inf"),
+        ("abc", "numeric array"),
+    ],
+)
+def test_bad_input_raises_clear_error(markers: object, match: str) -> None:
+    with pytest.raises(InputError, match=match):
+        fit_centre(markers)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("noise_std", [-1.0, float("nan"), "x"])
+def test_bad_noise_std(noise_std: object) -> None:
+    sim = gl_random_walk_setup(np.random.default_rng(12), 1.0)
+    with pytest.raises(InputError, match="noise_std"):
+        fit_centre(sim.markers, noise_std=noise_std)  # type: ignore[arg-type]
+
+
+def test_result_is_frozen() -> None:
+    fit = fit_centre(gl_random_walk_setup(np.random.default_rng(13), 1.0).markers)
+    with pytest.raises(ValueError):
+        fit.centre[0] = 0.0
+    with pytest.raises(AttributeError):
+        fit.rms = 0.0  # type: ignore[misc]
