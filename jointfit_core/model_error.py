@@ -75,7 +75,7 @@ def residual_inflation(whitened: ArrayLike, n_params: int, *, rho_max: float = 0
     z = np.asarray(whitened, dtype=np.float64)
     if z.ndim != 2:
         raise InputError(f"whitened: expected shape (N, k), got {z.shape}")
-    ok = np.isfinite(z).all(axis=1)
+    ok = np.asarray(np.isfinite(z).all(axis=1), dtype=bool)
     n_used = int(ok.sum())
     dof = n_used * z.shape[1] - n_params
     if dof <= 0:
