@@ -17,6 +17,7 @@ from .axis import axis_from_moments, fit_axis
 from .errors import InputError, JointfitError, MissingDependencyError, NotIdentifiableError
 from .moments import MarkerMoments, moments_from_markers
 from .results import AxisFit, CentreFit, SegmentsAxisFit, SegmentsCentreFit
+from .segments import fit_axis_two_segments, fit_centre_two_segments
 from .sphere import centre_from_moments, fit_centre
 
 __all__ = [
@@ -32,7 +33,9 @@ __all__ = [
     "axis_from_moments",
     "centre_from_moments",
     "fit_axis",
+    "fit_axis_two_segments",
     "fit_centre",
+    "fit_centre_two_segments",
     "moments_from_markers",
 ]
 __version__ = "0.1.0"
