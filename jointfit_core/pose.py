@@ -269,12 +269,19 @@ def _back_projected_mean(y: FloatArray, vis: BoolArray, poses: Poses) -> tuple[F
 
 
 def _anchor(x: FloatArray, y: FloatArray, vis: BoolArray, ref: int) -> FloatArray:
-    """Re-anchor a template: centroid at the origin, axes parallel to the world at frame ``ref``."""
+    """Re-anchor a template: centroid at the origin, axes parallel to the world at frame ``ref``.
+
+    ``ref`` is a frame with at least 3 visible non-collinear markers; the template is rotated by the
+    Kabsch rotation of that frame, so that the frame's pose becomes a pure translation.
+    """
     x = x - x.mean(axis=0)
-    pose_ref = _fit_poses(y[ref : ref + 1], vis[ref : ref + 1], x)
-    if not pose_ref.valid[0]:  # cannot happen for a valid reference frame; keep the centred template
-        return x
-    result: FloatArray = x @ pose_ref.R_world_local[0].T  # R_ref x_i: then the reference pose has R = I
+    sel = vis[ref]
+    xv = x[sel] - x[sel].mean(axis=0)
+    yv = y[ref, sel] - y[ref, sel].mean(axis=0)
+    U, _, Vt = np.linalg.svd(xv.T @ yv)
+    D = np.diag([1.0, 1.0, 1.0 if np.linalg.det(Vt.T @ U.T) >= 0.0 else -1.0])
+    R_ref = Vt.T @ D @ U.T
+    result: FloatArray = x @ R_ref.T  # R_ref x_i: then the reference pose has R = I
     return result
 
 
@@ -287,10 +294,11 @@ def template_from_markers(markers: ArrayLike, *, max_iter: int = 20, tol: float 
         Marker positions of one rigid segment, world frame, any length unit;
         NaN marks a missing marker.
     max_iter : int
-        Maximum number of pose <-> template iterations.
+        Maximum number of accelerated cycles (each makes two or three pose
+        <-> template steps).
     tol : float
-        Convergence tolerance, relative: stop when no template point moves by
-        more than ``tol`` times the template's rms radius.
+        Convergence tolerance, relative: stop when a step moves no template
+        point by more than ``tol`` times the template's rms radius.
 
     Returns
     -------
@@ -315,8 +323,11 @@ def template_from_markers(markers: ArrayLike, *, max_iter: int = 20, tol: float 
     (2) each template point becomes the mean over the posed frames where the
     marker is visible of ``R^T (y_i - d)`` (eq. 5). This alternation is a
     block-coordinate descent of the joint least-squares cost of all poses
-    and the template, so it never increases it; it converges in a few
-    iterations.
+    and the template, so it never increases it. With all markers visible it
+    converges in a few steps (as Stoddart reports); with occlusions the
+    convergence is linear and slower (a factor ~0.3 per step at 15 %
+    occlusion), so the steps are accelerated with SQUAREM (Varadhan &
+    Roland 2008), an extrapolation that is kept only if it lowers the cost.
 
     **Local frame convention.** After every iteration the template is
     re-anchored: shifted so that its centroid is the origin, and rotated so
@@ -359,16 +370,33 @@ def template_from_markers(markers: ArrayLike, *, max_iter: int = 20, tol: float 
 
     x = _anchor(x, y, vis, ref)
     for _ in range(max_iter):
-        poses = _fit_poses(y, vis, x)
-        mean, count = _back_projected_mean(y, vis, poses)
-        x_new = np.where(count[:, None] > 0, mean, x)
-        x_new = _anchor(x_new, y, vis, ref)
-        change = float(np.max(np.abs(x_new - x)))
-        x = x_new
-        scale = float(np.sqrt(np.mean(np.sum(x * x, axis=1))))
-        if change <= tol * scale:
+        # One SQUAREM cycle (Varadhan & Roland 2008) around the pose <-> template step.
+        x1, _ = _template_step(y, vis, x, ref)
+        r = x1 - x
+        scale = float(np.sqrt(np.mean(np.sum(x1 * x1, axis=1))))
+        if float(np.max(np.abs(r))) <= tol * scale:
+            x = x1
             break
+        x2, cost1 = _template_step(y, vis, x1, ref)
+        v = x2 - 2.0 * x1 + x
+        norm_v = float(np.linalg.norm(v))
+        alpha = min(-float(np.linalg.norm(r)) / norm_v, -1.0) if norm_v > 0.0 else -1.0
+        x_next = x2
+        if alpha < -1.0:
+            x3, cost_extra = _template_step(y, vis, x - 2.0 * alpha * r + alpha * alpha * v, ref)
+            if cost_extra <= cost1:  # keep the descent: accept the extrapolation only if it helped
+                x_next = x3
+        x = x_next
     return x
+
+
+def _template_step(y: FloatArray, vis: BoolArray, x: FloatArray, ref: int) -> tuple[FloatArray, float]:
+    """Stoddart's eq. (4) then (5) and the re-anchoring; returns the new template and the cost at ``x``."""
+    poses = _fit_poses(y, vis, x)
+    cost = float(np.sum((poses.rms**2 * poses.n_visible)[poses.valid]))
+    mean, count = _back_projected_mean(y, vis, poses)
+    x_new = np.where(count[:, None] > 0, mean, x)
+    return _anchor(x_new, y, vis, ref), cost
 
 
 def noise_std_from_fit(

@@ -438,9 +438,13 @@ def centre_from_pose_sums(
         Sums over the frames (:func:`pose_sums_from_relative`).
     W_parent_local, W_child_local : array_like, shape (6, 6)
         Pose covariance of each segment in its local frame, about its local
-        origin (rotation vector in radians, translation in input units), as
-        returned by :func:`jointfit_core.pose.pose_covariance_local` for the
-        full template (all markers visible).
+        origin (rotation vector in radians, translation in input units),
+        averaged over the summed frames:
+        the mean of :func:`jointfit_core.pose.pose_covariance_local` with
+        each frame's visible markers (for the full template when no marker
+        is occluded). :func:`fit_centre_two_segments` passes that mean; an
+        online estimator reproduces it with a running sum of the unit-noise
+        covariances times the current ``noise_std**2``.
     length_scale : float
         Lower bound of the lever arm used in the identifiability check
         (input units; e.g. the cluster's rms radius). Default 0.
@@ -475,9 +479,11 @@ def centre_from_pose_sums(
     W_parent_local J_p^T`` and ``J_p = [-[c_p]x, I]`` the error of the
     parent-carried centre (likewise for the child), so
     ``cov(a) = H^-1 (sum_t M_t^T W_t M_t) H^-1`` with ``M_t = [I, -Q_t]``.
-    The middle sum needs only ``N``, ``S`` and ``K = sum Q (x) Q`` because
-    ``W_p`` and ``W_c`` are the same in every frame. Frames with occluded
-    markers are in fact a little noisier than this full-template model says.
+    The middle sum needs only ``N``, ``S`` and ``K = sum Q (x) Q`` when
+    ``W_p`` and ``W_c`` are the same in every frame; with occlusions they
+    vary, and the mean covariances are used: exact for the ``sum W_p`` and
+    ``sum W_c`` blocks, an approximation (visibility independent of
+    ``Q_t``) for the terms with ``K``.
     The covariance scales with the marker noise variance and, for a fixed
     range of motion, as ``1 / N``.
 
@@ -897,8 +903,11 @@ def fit_centre_two_segments(
     W_t^-1 t_t`` with ``M_t = [I, -Q_t]`` (eq. 13, 19), recomputing ``W_t`` at
     the new ``a``, from the closed form; ``cov(a) = (sum M^T W_t^-1 M)^-1``
     (eq. 23). The weighted fit uses each frame's visible markers for
-    ``W_p, W_c``; the unweighted sandwich covariance uses the full templates
-    (frames with occluded markers are slightly noisier than it assumes).
+    ``W_p, W_c``; the unweighted sandwich covariance uses their mean over the
+    used frames (see :func:`centre_from_pose_sums`). Frames in which a
+    segment's visible markers are nearly collinear or bunched (rotation
+    variance above :data:`POSE_VAR_RATIO_MAX` times the full template's, or
+    rotation sd above :data:`POSE_ROT_SD_MAX`) are not used.
     ``sigma_p`` and ``sigma_c`` are pooled from each segment's pose-fit
     residuals (:func:`jointfit_core.pose.noise_std_from_fit`). Covariances
     scale with the marker noise variance and, for a fixed range of motion,
@@ -961,23 +970,24 @@ def fit_centre_two_segments(
     if method == "sphere":
         return _fit_centre_sphere(prep)
 
-    Wp6_full = pose_covariance_local(prep.template_parent, prep.sigma_parent)
-    Wc6_full = pose_covariance_local(prep.template_child, prep.sigma_child)
+    vis_p, vis_c = prep.poses_parent.visible[used], prep.poses_child.visible[used]
+    Wp6 = pose_covariance_local(prep.template_parent, prep.sigma_parent, vis_p)
+    Wc6 = pose_covariance_local(prep.template_child, prep.sigma_child, vis_c)
+    # The closed form's sandwich takes the mean local pose covariance over the used frames.
+    Wp6_mean = Wp6.mean(axis=0)
+    Wc6_mean = Wc6.mean(axis=0)
     closed = centre_from_pose_sums(
-        pose_sums_from_relative(Q, t), Wp6_full, Wc6_full, length_scale=prep.length_scale
+        pose_sums_from_relative(Q, t), Wp6_mean, Wc6_mean, length_scale=prep.length_scale
     )
     a = np.concatenate([closed.centre_parent, closed.centre_child])
     cov = closed.cov
     if weighted and (prep.sigma_parent > 0.0 or prep.sigma_child > 0.0):
-        vis_p, vis_c = prep.poses_parent.visible[used], prep.poses_child.visible[used]
-        Wp6 = pose_covariance_local(prep.template_parent, prep.sigma_parent, vis_p)
-        Wc6 = pose_covariance_local(prep.template_child, prep.sigma_child, vis_c)
         noise_p = pose_noise_local(prep.template_parent, prep.sigma_parent, vis_p)
         noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
         a, cov = _gauss_markov_centre(Q, t, noise_p, noise_c, Wp6, Wc6, a)
     c_p, c_c = a[:3], a[3:]
     if model_error:
-        cov = cov * _model_error_inflation(prep, c_p, c_c, Wp6_full, Wc6_full).factor
+        cov = cov * _model_error_inflation(prep, c_p, c_c, Wp6_mean, Wc6_mean).factor
     cov_parent, cov_child = cov[:3, :3], cov[3:, 3:]
     centre_world, cov_world, residual = _world_outputs(prep, c_p, c_c, cov_parent)
     identifiable, reason = _centre_verdict(

@@ -220,6 +220,56 @@ def test_centre_covariance_calibration() -> None:
         assert 0.8 < mean_c < 1.25, (name, mean_c)
 
 
+def test_centre_covariance_calibration_with_occlusions() -> None:
+    """15 % of the markers and some whole frames missing (4 markers per segment): still calibrated."""
+    rng = np.random.default_rng(44)
+    e: dict[str, list[float]] = {"weighted": [], "closed": []}
+    for _ in range(150):  # an extra check beyond the 200-trial ones: fewer trials to keep the file fast
+        rig = _rig(rng, 150, n_markers=(4, 4))
+        parent, child = rig.parent.copy(), rig.child.copy()
+        parent[rng.random(parent.shape[:2]) < 0.15] = np.nan
+        child[rng.random(child.shape[:2]) < 0.15] = np.nan
+        child[rng.integers(0, 150, 5)] = np.nan
+        for name, weighted in (("weighted", True), ("closed", False)):
+            fit = fit_centre_two_segments(parent, child, weighted=weighted)
+            err_p, _ = _centre_errors(fit, rig)
+            e[name].append(_mahalanobis(err_p, fit.cov_parent, 3) / 3)
+    for name, values in e.items():
+        assert 0.8 < np.mean(values) < 1.25, (name, np.mean(values))
+
+
+def test_badly_posed_frames_are_not_used() -> None:
+    """Frames whose visible markers are nearly collinear are posed but left out of the joint fit."""
+    rng = np.random.default_rng(17)
+    rig = _rig(rng, 300, n_markers=(4, 3))
+    # Same true parent frame, new cluster: three markers nearly on a line, the fourth well off it.
+    x = np.array([[-90.0, 0.0, 0.0], [0.0, 3.0, 0.0], [90.0, 0.0, 0.0], [0.0, 80.0, 10.0]])
+    x -= x.mean(axis=0)
+    parent = np.einsum("nij,pj->npi", rig.R_parent, x) + rig.d_parent[:, None, :]
+    parent += rng.normal(0.0, SIGMA, parent.shape)
+    parent[::3, 3] = np.nan  # every third frame: the 3 nearly collinear markers (posed, but degrees off)
+    fit = fit_centre_two_segments(parent, rig.child)
+    poses = poses_from_markers(parent, fit.template_parent)
+    assert poses.valid[::3].all()
+    assert np.isnan(fit.residual[::3]).all()
+    assert np.isfinite(fit.centre_world[::3]).all()  # the parent still carries the centre there
+    assert fit.n_frames == 200
+    assert fit.identifiable, fit.reason
+    rig_x = Rig(
+        parent,
+        rig.child,
+        x,
+        rig.template_child,
+        rig.centre_parent,
+        rig.centre_child,
+        rig.R_parent,
+        rig.d_parent,
+    )
+    err_p, err_c = _centre_errors(fit, rig_x)
+    assert _mahalanobis(err_p, fit.cov_parent, 3) < 16.3
+    assert _mahalanobis(err_c, fit.cov_child, 3) < 16.3
+
+
 def test_hinge_covariance_calibration() -> None:
     """Mean of e/2 (directions, rank 2) and e/3 (points) over 200 seeded trials."""
     rng = np.random.default_rng(43)
