@@ -65,6 +65,9 @@ def check_markers(
 def check_frame(frame: ArrayLike, n_markers: int | None = None, *, name: str = "frame") -> NDArray[np.float64]:
     """Return one frame as float64 of shape (P, 3), NaN for missing.
 
+    A float64 array input is returned as is (not copied) unless a partly
+    NaN marker has to be made all-NaN; callers that keep the frame copy it.
+
     Parameters
     ----------
     frame : array_like, shape (P, 3)
@@ -78,16 +81,19 @@ def check_frame(frame: ArrayLike, n_markers: int | None = None, *, name: str = "
         Wrong shape, wrong marker count or infinite values.
     """
     try:
-        arr = np.array(frame, dtype=np.float64, copy=True)
+        arr = np.asarray(frame, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: expected a numeric array of shape (P, 3), got {type(frame).__name__}: {exc}") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError(f"{name}: expected shape (P, 3), got shape {arr.shape}")
     if n_markers is not None and arr.shape[0] != n_markers:
         raise InputError(f"{name}: expected {n_markers} markers, got {arr.shape[0]}")
-    if np.isinf(arr).any():
-        raise InputError(f"{name}: contains inf; use NaN for missing markers")
-    arr[np.isnan(arr).any(axis=1)] = np.nan
+    finite = np.isfinite(arr)
+    if not finite.all():
+        if np.isinf(arr).any():
+            raise InputError(f"{name}: contains inf; use NaN for missing markers")
+        arr = arr.copy()
+        arr[~finite.all(axis=1)] = np.nan
     return arr
 
 

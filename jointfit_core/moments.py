@@ -18,7 +18,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from .checks import check_markers, valid_mask
 
-__all__ = ["MarkerMoments", "CentralMoments", "moments_from_markers", "central_moments", "frame_moments"]
+__all__ = [
+    "MarkerMoments",
+    "CentralMoments",
+    "moments_from_markers",
+    "central_moments",
+    "frame_moments",
+    "shift_sums",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -159,20 +166,60 @@ def moments_from_markers(markers: ArrayLike, ref: ArrayLike | None = None) -> Ma
     return MarkerMoments(ref=ref_arr, w=w, w2=w2, s1=s1, s2=s2, s3=s3, s4=s4, n_frames=n_frames)
 
 
+def shift_sums(
+    w: FloatArray, s1: FloatArray, s2: FloatArray, s3: FloatArray, s4: FloatArray, d: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Raw sums about a point moved by ``d``: the sums of ``y - d`` from those of ``y``.
+
+    Parameters
+    ----------
+    w : ndarray, shape (P,)
+    s1, s2, s3, s4 : ndarray, shapes (P, 3), (P, 3, 3), (P, 3), (P,)
+        Sums as in :class:`MarkerMoments`.
+    d : ndarray, shape (P, 3) or (3,)
+        Shift of the reference point, per marker or common.
+
+    Returns
+    -------
+    s1, s2, s3, s4
+        The sums of ``w (y - d)``, ``w (y - d)(y - d)^T``, ``w |y - d|^2 (y - d)``
+        and ``w |y - d|^4``.
+
+    Notes
+    -----
+    Expanding the powers of ``y - d``:
+
+    * ``s1' = s1 - w d``
+    * ``s2' = s2 - s1 d^T - d s1^T + w d d^T``
+    * ``s3' = s3 - tr(s2) d - 2 s2 d + 2 (s1.d) d + |d|^2 s1 - w |d|^2 d``
+    * ``s4' = s4 + 4 d^T s2 d - 4 s3.d + 2 |d|^2 tr(s2) - 4 |d|^2 (s1.d) + w |d|^4``
+
+    The loss of precision grows with ``|d| / spread``.
+    """
+    dd = np.broadcast_to(d, s1.shape)
+    tr2 = np.einsum("pii->p", s2)
+    d2 = np.einsum("pi,pi->p", dd, dd)
+    s1d = np.einsum("pi,pi->p", s1, dd)
+    s2d = np.einsum("pij,pj->pi", s2, dd)
+    n1 = s1 - w[:, None] * dd
+    n2 = s2 - np.einsum("pi,pj->pij", s1, dd) - np.einsum("pi,pj->pij", dd, s1)
+    n2 = n2 + w[:, None, None] * np.einsum("pi,pj->pij", dd, dd)
+    n2 = 0.5 * (n2 + np.swapaxes(n2, 1, 2))
+    n3 = s3 - tr2[:, None] * dd - 2.0 * s2d + (2.0 * s1d)[:, None] * dd + d2[:, None] * s1
+    n3 = n3 - (w * d2)[:, None] * dd
+    n4 = s4 + 4.0 * np.einsum("pi,pi->p", dd, s2d) - 4.0 * np.einsum("pi,pi->p", s3, dd)
+    n4 = n4 + 2.0 * d2 * tr2 - 4.0 * d2 * s1d + w * d2 * d2
+    return n1, n2, n3, n4
+
+
 def central_moments(mom: MarkerMoments) -> CentralMoments:
     """Convert raw sums about ``ref`` to per-marker central moments.
 
     Notes
     -----
-    With ``mu = s1 / n`` (shapes per marker):
-
-    * ``m2 = s2 - n mu mu^T``
-    * ``m3 = s3 - tr(s2) mu - 2 s2 mu + 2 n |mu|^2 mu``
-    * ``m4 = s4 + 4 mu^T s2 mu - 4 mu . s3 + 2 |mu|^2 tr(s2) - 3 n |mu|^4``
-
-    (expanding ``|y - mu|^2 (y - mu)`` and ``|y - mu|^4``). The loss of
-    precision grows with ``|mu| / spread``, which is why the sums are kept
-    about a reference point near the data.
+    :func:`shift_sums` with ``d = mu = s1 / n``, each marker about its own
+    mean. The loss of precision grows with ``|mu| / spread``, which is why
+    the sums are kept about a reference point near the data.
     """
     n = mom.w
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -180,14 +227,7 @@ def central_moments(mom: MarkerMoments) -> CentralMoments:
         used = dof > 1e-9 * np.maximum(n, 1.0)
         safe_n = np.where(used, n, 1.0)
         mu = np.where(used[:, None], mom.s1 / safe_n[:, None], 0.0)
-    tr2 = np.einsum("pii->p", mom.s2)
-    mu2 = np.einsum("pi,pi->p", mu, mu)
-    s2mu = np.einsum("pij,pj->pi", mom.s2, mu)
-    m2 = mom.s2 - n[:, None, None] * np.einsum("pi,pj->pij", mu, mu)
-    m2 = 0.5 * (m2 + np.swapaxes(m2, 1, 2))
-    m3 = mom.s3 - tr2[:, None] * mu - 2.0 * s2mu + 2.0 * (n * mu2)[:, None] * mu
-    m4 = mom.s4 + 4.0 * np.einsum("pi,pi->p", mu, s2mu) - 4.0 * np.einsum("pi,pi->p", mu, mom.s3)
-    m4 = m4 + 2.0 * mu2 * tr2 - 3.0 * n * mu2 * mu2
+    _, m2, m3, m4 = shift_sums(n, mom.s1, mom.s2, mom.s3, mom.s4, mu)
     m2 = np.where(used[:, None, None], m2, 0.0)
     m3 = np.where(used[:, None], m3, 0.0)
     m4 = np.where(used, np.maximum(m4, 0.0), 0.0)

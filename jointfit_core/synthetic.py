@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 __all__ = [
@@ -18,6 +18,8 @@ __all__ = [
     "gl_axis_setup",
     "gl_random_walk_setup",
     "random_walk_rotations",
+    "TwoSegmentMotion",
+    "two_segment_motion",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -131,3 +133,126 @@ def gl_axis_setup(
     clean = np.einsum("nij,pj->npi", rots, GL_AXIS_MARKERS - point) + point
     noisy = clean + rng.normal(0.0, noise_std, clean.shape)
     return SyntheticAxis(markers=noisy, clean=clean, point=point, direction=direction)
+
+
+@dataclass(frozen=True)
+class TwoSegmentMotion:
+    """Two rigid marker clusters joined by a ball joint or a hinge, as a function of time.
+
+    A Stoddart-like rig: the parent wanders (rotations of ~15 deg and
+    translations of ~100 mm) while the child rotates relative to it about
+    the joint (three axes for a ball, one for a hinge). The motion is a sum
+    of sinusoids, so it can be evaluated at any time (streams, demos) and
+    never ends.
+
+    Attributes
+    ----------
+    template_parent, template_child : ndarray, shape (Pa, 3) and (Pc, 3)
+        Marker coordinates in each segment's true local frame (mm).
+    centre_parent, centre_child : ndarray, shape (3,)
+        The joint centre (a point of the hinge axis) in the local frames (mm).
+    axis : ndarray, shape (3,)
+        Hinge direction in both local frames (unit; used when ``kind`` is "hinge").
+    kind : str
+        "ball", "hinge" or "none" (no relative rotation).
+    phase, freq : ndarray, shape (9,)
+        Phases (rad) and frequencies (Hz) of the sinusoids.
+    offset : ndarray, shape (3,)
+        Mean position of the parent origin in the world (mm).
+    """
+
+    template_parent: FloatArray
+    template_child: FloatArray
+    centre_parent: FloatArray
+    centre_child: FloatArray
+    axis: FloatArray
+    kind: str
+    phase: FloatArray
+    freq: FloatArray
+    offset: FloatArray
+
+    def poses_at(self, times: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """True world poses ``(R_parent, d_parent, R_child, d_child)`` at ``times`` (s), shapes (N, 3, 3), (N, 3)."""
+        t = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        wave = np.sin(2.0 * np.pi * self.freq * t[:, None] + self.phase)
+        R_p = Rotation.from_rotvec(np.deg2rad(15.0) * wave[:, :3]).as_matrix()
+        d_p = 100.0 * wave[:, 3:6] + self.offset
+        if self.kind == "ball":
+            rotvec = np.deg2rad(np.array([40.0, 30.0, 20.0])) * wave[:, 6:9]
+        elif self.kind == "hinge":
+            rotvec = np.deg2rad(30.0 + 50.0 * wave[:, 6:7]) * self.axis
+        else:
+            rotvec = np.zeros((t.size, 3))
+        R_c = R_p @ Rotation.from_rotvec(rotvec).as_matrix()
+        joint = np.einsum("nij,j->ni", R_p, self.centre_parent) + d_p
+        d_c = joint - np.einsum("nij,j->ni", R_c, self.centre_child)
+        return R_p, d_p, R_c, d_c
+
+    def markers_at(self, times: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Noise-free world markers ``(parent (N, Pa, 3), child (N, Pc, 3))`` at ``times`` (s)."""
+        R_p, d_p, R_c, d_c = self.poses_at(times)
+        yp = np.einsum("nij,pj->npi", R_p, self.template_parent) + d_p[:, None, :]
+        yc = np.einsum("nij,pj->npi", R_c, self.template_child) + d_c[:, None, :]
+        return yp, yc
+
+    def centre_world_at(self, times: ArrayLike) -> FloatArray:
+        """True joint centre (hinge: the axis point ``centre_parent``) in the world, shape (N, 3), mm."""
+        R_p, d_p, _, _ = self.poses_at(times)
+        out: FloatArray = np.einsum("nij,j->ni", R_p, self.centre_parent) + d_p
+        return out
+
+
+def _cluster(rng: np.random.Generator, n_markers: int) -> FloatArray:
+    """A marker cluster 100-200 mm wide, centred at its centroid, randomly oriented."""
+    ang = np.linspace(0.0, 2.0 * np.pi, n_markers, endpoint=False) + rng.uniform(-0.3, 0.3, n_markers)
+    r = rng.uniform(50.0, 100.0, n_markers)
+    x = np.stack([r * np.cos(ang), r * np.sin(ang), rng.normal(0.0, 15.0, n_markers)], axis=1)
+    x = x @ Rotation.random(random_state=rng).as_matrix().T
+    out: FloatArray = x - x.mean(axis=0)
+    return out
+
+
+def two_segment_motion(
+    rng: np.random.Generator,
+    *,
+    kind: str = "ball",
+    n_markers: tuple[int, int] = (4, 4),
+    cycle_s: float = 20.0,
+    offset: ArrayLike = (100.0, 200.0, 900.0),
+) -> TwoSegmentMotion:
+    """A random Stoddart-like two-segment rig (see :class:`TwoSegmentMotion`).
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    kind : {"ball", "hinge", "none"}
+    n_markers : (int, int)
+        Markers on the parent and the child cluster.
+    cycle_s : float
+        Time scale of the motion (s): the sinusoids have periods between
+        0.1 and 0.33 times ``cycle_s``, so that ``cycle_s`` seconds hold
+        3-10 cycles of each. Default 20 s (periods 2-6.7 s, as the
+        1200-frame, 60 Hz rig of the tests).
+    offset : array_like, shape (3,)
+        Mean world position of the parent origin (mm); lab coordinates can be
+        far from the origin.
+    """
+    if kind not in ("ball", "hinge", "none"):
+        raise ValueError(f"kind: expected 'ball', 'hinge' or 'none', got {kind!r}")
+    xp = _cluster(rng, n_markers[0])
+    xc = _cluster(rng, n_markers[1])
+    c_p = np.array([0.0, 0.0, -500.0]) + rng.normal(0.0, 30.0, 3)
+    c_c = np.array([0.0, 0.0, 500.0]) + rng.normal(0.0, 30.0, 3)
+    phase = rng.uniform(0.0, 2.0 * np.pi, 9)
+    freq = rng.uniform(0.15, 0.5, 9) * 20.0 / cycle_s
+    return TwoSegmentMotion(
+        template_parent=xp,
+        template_child=xc,
+        centre_parent=c_p,
+        centre_child=c_c,
+        axis=np.array([1.0, 0.0, 0.0]),
+        kind=kind,
+        phase=phase,
+        freq=freq,
+        offset=np.asarray(offset, dtype=np.float64),
+    )

@@ -1,0 +1,801 @@
+"""Online joint between two moving segments: the estimator the ROS node drives.
+
+:class:`OnlineJoint` takes, per frame, the world positions of the parent and
+child markers; establishes each segment's template from its first fully
+visible frames; fits both poses; keeps the sufficient statistics of the
+relative poses over a sliding window (:mod:`jointfit_core.stats`); and
+returns, for every frame, the joint's world position (or axis) carried by the
+current parent pose, with its covariance. :meth:`OnlineJoint.estimate`
+solves the closed forms (:func:`~jointfit_core.segments.centre_from_pose_sums`,
+:func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`) from the sums.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .calibration import fit_from_dict, fit_to_dict
+from .checks import check_frame, check_vector3
+from .errors import InputError
+from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
+from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
+from .segments import POSE_VAR_RATIO_MAX, PoseSums, PoseSumsCentre, centre_from_pose_sums
+from .stats import SlidingSums, WindowSpec, window_spec
+
+__all__ = ["OnlineJoint", "JointOutput", "CALIBRATION_FORMAT", "CALIBRATION_VERSION"]
+
+FloatArray = NDArray[np.float64]
+
+#: ``format`` and ``version`` keys of a saved calibration (:meth:`OnlineJoint.to_dict`).
+CALIBRATION_FORMAT = "jointfit-calibration"
+CALIBRATION_VERSION = 1
+_KINDS = ("ball", "hinge")
+#: Sums layout: n, S (9), sum_t (3), sum_qt_t (3), sum_tt, vec(Q) vec(Q)^T (81), unit W_p (36),
+#: unit W_c (36), ss_p, dof_p, ss_c, dof_c.
+_N_SUMS = 1 + 9 + 3 + 3 + 1 + 81 + 36 + 36 + 4
+
+
+@dataclass(frozen=True, eq=False)
+class JointOutput:
+    """The joint in the world for one frame, carried by the parent's pose.
+
+    Attributes
+    ----------
+    kind : str
+        "ball" or "hinge".
+    position : ndarray, shape (3,)
+        Ball: the joint centre; hinge: the axis point nearest the parent
+        template centroid. World frame, input units.
+    cov : ndarray, shape (3, 3)
+        Its covariance: the estimate's (parent frame, rotated) plus this
+        frame's parent pose noise at that point.
+    direction : ndarray, shape (3,) or None
+        Hinge: unit axis direction, world frame (sign as the estimate's).
+    cov_direction : ndarray, shape (3, 3) or None
+        Hinge: its covariance (rank 2).
+    residual : float
+        Distance between the parent- and the child-carried joint (hinge: of
+        the parent's axis point from the child's axis line); NaN when the
+        child could not be posed in this frame.
+    """
+
+    kind: str
+    position: FloatArray
+    cov: FloatArray
+    direction: FloatArray | None
+    cov_direction: FloatArray | None
+    residual: float
+
+
+def _identity(records: FloatArray, refs: FloatArray) -> FloatArray:
+    """The estimator pushes contribution vectors directly (see :meth:`OnlineJoint._add`)."""
+    return records
+
+
+# --------------------------------------------------------------------------- per-frame poses
+
+
+def _kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Least-squares pose ``y ~ R x + d`` of fully visible points (template building only)."""
+    xb = x.mean(axis=0)
+    yb = y.mean(axis=0)
+    U, _, Vt = np.linalg.svd((x - xb).T @ (y - yb))
+    R = Vt.T @ U.T
+    if np.linalg.det(R) < 0.0:
+        Vt[2] = -Vt[2]
+        R = Vt.T @ U.T
+    return R, yb - R @ xb
+
+
+def _horn_matrices() -> tuple[FloatArray, FloatArray]:
+    """Fixed linear maps of Horn's method: ``N = A @ vec(S)`` (16, 9) and ``vec(R) = B @ vec(q q^T)`` (9, 16).
+
+    ``S = sum x y^T`` of centred template points ``x`` and measured points ``y``; the rotation
+    ``R`` maximising ``sum y . R x`` comes from the unit quaternion ``q = (w, x, y, z)`` of the
+    largest eigenvalue of the symmetric ``N`` (Horn 1987), and that eigenvalue is ``tr(R S)``.
+    """
+    A = np.zeros((4, 4, 3, 3))
+    xx, xy, xz, yx, yy, yz, zx, zy, zz = ((i, j) for i in range(3) for j in range(3))
+    entries = {
+        (0, 0): [(xx, 1), (yy, 1), (zz, 1)],
+        (0, 1): [(yz, 1), (zy, -1)],
+        (0, 2): [(zx, 1), (xz, -1)],
+        (0, 3): [(xy, 1), (yx, -1)],
+        (1, 1): [(xx, 1), (yy, -1), (zz, -1)],
+        (1, 2): [(xy, 1), (yx, 1)],
+        (1, 3): [(zx, 1), (xz, 1)],
+        (2, 2): [(xx, -1), (yy, 1), (zz, -1)],
+        (2, 3): [(yz, 1), (zy, 1)],
+        (3, 3): [(xx, -1), (yy, -1), (zz, 1)],
+    }
+    for (r, c), terms in entries.items():
+        for (i, j), sign in terms:
+            A[r, c, i, j] += sign
+            if r != c:
+                A[c, r, i, j] += sign
+    B = np.zeros((3, 3, 4, 4))
+    w, x, y, z = range(4)
+    rot = {
+        (0, 0): [((w, w), 1), ((x, x), 1), ((y, y), -1), ((z, z), -1)],
+        (0, 1): [((x, y), 2), ((w, z), -2)],
+        (0, 2): [((x, z), 2), ((w, y), 2)],
+        (1, 0): [((x, y), 2), ((w, z), 2)],
+        (1, 1): [((w, w), 1), ((x, x), -1), ((y, y), 1), ((z, z), -1)],
+        (1, 2): [((y, z), 2), ((w, x), -2)],
+        (2, 0): [((x, z), 2), ((w, y), -2)],
+        (2, 1): [((y, z), 2), ((w, x), 2)],
+        (2, 2): [((w, w), 1), ((x, x), -1), ((y, y), -1), ((z, z), 1)],
+    }
+    for (r, c), terms in rot.items():
+        for (i, j), coef in terms:
+            B[r, c, i, j] += coef
+    return A.reshape(16, 9), B.reshape(9, 16)
+
+
+_HORN_A, _HORN_B = _horn_matrices()
+
+try:  # the gufunc behind np.linalg.eigh, without its Python-level checks (~3 us per call here)
+    from numpy.linalg import _umath_linalg
+
+    _eigh: Any = _umath_linalg.eigh_lo
+except (ImportError, AttributeError):  # pragma: no cover - other numpy versions
+    _eigh = np.linalg.eigh
+
+
+@dataclass(frozen=True, eq=False)
+class _VisibleSet:
+    """Template-side quantities of one set of visible markers (cached per visibility pattern)."""
+
+    index: NDArray[np.intp]  # visible markers
+    n: float
+    xbar: FloatArray  # (3,) centroid of the visible template points
+    xc: FloatArray  # (P, 3) centred visible template points, zero rows where not visible
+    xx: float  # sum |xc|^2
+    W_unit: FloatArray  # (6, 6) local pose covariance at unit noise
+    dof: float  # 3 n - 6
+
+
+@dataclass(frozen=True, eq=False)
+class _PairSet:
+    """Both segments' visible sets of one frame, stacked for the batched pose fit (cached)."""
+
+    parent: _VisibleSet | None
+    child: _VisibleSet | None
+    xc_t: FloatArray  # (2, 3, Pmax) centred template points, zero columns for missing or padding
+    wn: FloatArray  # (2, Pmax) visible / n
+    n: FloatArray  # (2,)
+    xbar: FloatArray  # (2, 3)
+    xx: FloatArray  # (2,)
+    W_flat: FloatArray  # (72,) unit W_p and W_c, raveled (zeros when a segment is not posed)
+    dof: FloatArray  # (2,)
+
+
+def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int) -> _PairSet:
+    xc = np.zeros((2, p_max, 3))
+    wn = np.zeros((2, p_max))
+    n = np.ones(2)
+    xbar = np.zeros((2, 3))
+    xx = np.zeros(2)
+    W = np.zeros((2, 36))
+    dof = np.zeros(2)
+    for k, vs in enumerate((parent, child)):  # two segments
+        if vs is None:
+            continue
+        xc[k, : vs.xc.shape[0]] = vs.xc
+        wn[k, vs.index] = 1.0 / vs.n
+        n[k] = vs.n
+        xbar[k] = vs.xbar
+        xx[k] = vs.xx
+        W[k] = vs.W_unit.ravel()
+        dof[k] = vs.dof
+    return _PairSet(parent, child, np.ascontiguousarray(np.swapaxes(xc, 1, 2)), wn, n, xbar, xx, W.ravel(), dof)
+
+
+def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Least-squares poses of both segments (Horn's quaternion method, one batched ``eigh``).
+
+    Parameters
+    ----------
+    Y : ndarray, shape (2, Pmax, 3)
+        Measured world points of the parent and the child, zero where missing or padding
+        (the residual sum of squares relies on the zeros).
+    ps : _PairSet
+
+    Returns
+    -------
+    R : ndarray, shape (2, 3, 3)
+    d : ndarray, shape (2, 3)
+        ``world = R @ local + d``.
+    ss : ndarray, shape (2,)
+        Residual sums of squares ``|y - R x - d|^2`` over the visible markers,
+        ``|y - ybar|^2 + |x_c|^2 - 2 lambda_max``.
+    """
+    ybar = (ps.wn[:, None, :] @ Y)[:, 0]
+    S = ps.xc_t @ Y  # centred x: no need to centre y
+    N = (S.reshape(2, 9) @ _HORN_A.T).reshape(2, 4, 4)
+    lam, V = _eigh(N)
+    q = V[:, :, 3]
+    R = ((q[:, :, None] * q[:, None, :]).reshape(2, 16) @ _HORN_B.T).reshape(2, 3, 3)
+    d = ybar - (R @ ps.xbar[:, :, None])[:, :, 0]
+    yy = (Y * Y).sum(axis=(1, 2)) - ps.n * (ybar * ybar).sum(axis=1)  # Y is zero where not visible
+    ss = np.maximum(yy + ps.xx - 2.0 * lam[:, 3], 0.0)
+    return R, d, ss
+
+
+class _Segment:
+    """Template building and per-visibility caches of one segment."""
+
+    def __init__(self, name: str, n_markers: int, template_frames: int) -> None:
+        self.name = name
+        self.n_markers = n_markers
+        self.template_frames = template_frames
+        self.template: FloatArray | None = None
+        self._x0: FloatArray | None = None
+        self._acc = np.zeros((n_markers, 3))
+        self._count = 0
+        self._cache: dict[bytes, _VisibleSet | None] = {}
+        self._full_rot = 0.0
+
+    @property
+    def template_progress(self) -> int:
+        return self._count
+
+    def add_template_frame(self, y: FloatArray) -> None:
+        """Use a fully visible frame for the template (aligned to the first one and averaged)."""
+        if self.template is not None or np.isnan(y).any():
+            return
+        if self._x0 is None:
+            x0 = y - y.mean(axis=0)
+            if not _shape_ok(x0):
+                return
+            self._x0 = x0
+            aligned = x0
+        else:
+            R, d = _kabsch(y, self._x0)
+            aligned = (y - d) @ R
+        self._acc += aligned
+        self._count += 1
+        if self._count >= self.template_frames:
+            self.set_template(self._acc / self._count)
+
+    def set_template(self, template: FloatArray) -> None:
+        x = np.asarray(template, dtype=np.float64)
+        self.template = x - x.mean(axis=0)
+        self._cache = {}
+        full = pose_covariance_local(self.template, 1.0)
+        self._full_rot = float(np.linalg.eigvalsh(full[:3, :3])[-1])
+
+    def visible_set(self, vis: NDArray[np.bool_]) -> _VisibleSet | None:
+        """Cached quantities of these visible markers; None when they cannot pose the segment well."""
+        key = vis.tobytes()
+        try:
+            return self._cache[key]
+        except KeyError:
+            pass
+        assert self.template is not None
+        out: _VisibleSet | None = None
+        xv = self.template[vis]
+        if xv.shape[0] >= MIN_POSE_MARKERS and _shape_ok(xv):
+            W = pose_covariance_local(self.template, 1.0, vis)
+            worst = float(np.linalg.eigvalsh(W[:3, :3])[-1])
+            if np.isfinite(W).all() and worst <= POSE_VAR_RATIO_MAX * self._full_rot:
+                xbar = xv.mean(axis=0)
+                xc = np.where(vis[:, None], self.template - xbar, 0.0)
+                out = _VisibleSet(
+                    index=np.flatnonzero(vis),
+                    n=float(xv.shape[0]),
+                    xbar=xbar,
+                    xc=xc,
+                    xx=float(np.einsum("ij,ij->", xc, xc)),
+                    W_unit=W,
+                    dof=3.0 * xv.shape[0] - 6.0,
+                )
+        self._cache[key] = out
+        return out
+
+    @property
+    def rms_radius(self) -> float:
+        assert self.template is not None
+        return float(np.sqrt(np.mean(np.sum(self.template**2, axis=1))))
+
+
+def _shape_ok(points: FloatArray) -> bool:
+    """At least 3 points, not collinear (second singular value above COLLINEAR_RTOL of the first)."""
+    pts = points - points.mean(axis=0)
+    lam = np.linalg.eigvalsh(pts.T @ pts)
+    return bool(points.shape[0] >= MIN_POSE_MARKERS and lam[2] > 0 and lam[1] > COLLINEAR_RTOL**2 * lam[2])
+
+
+# --------------------------------------------------------------------------- the estimator
+
+
+class OnlineJoint:
+    """Ball joint or hinge between two moving segments, online, O(1) per frame.
+
+    Parameters
+    ----------
+    kind : {"ball", "hinge"}
+    window : int, optional
+        Window length in frames (>= 3).
+    window_s : float, optional
+        Window length in seconds (stamps required).
+    half_life : float, optional
+        Exponential forgetting, half-life in frames.
+    half_life_s : float, optional
+        Exponential forgetting, half-life in seconds (stamps required).
+    template_frames : int
+        Fully visible frames averaged into each segment's template before
+        estimation starts (default 50). The frames seen meanwhile are kept
+        and enter the window once the templates are fixed.
+    reference_direction : array_like, shape (3,), optional
+        Hinge sign convention, parent local frame (see
+        :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`); keeps the
+        sign stable over time.
+    n_markers : (int, int), optional
+        Expected marker counts of the parent and the child (default: from
+        the first frame). At least 3 each.
+
+    Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
+
+    Notes
+    -----
+    **Templates.** Each segment's template is the mean of its first
+    ``template_frames`` fully visible frames, each aligned (Kabsch) to the
+    first of them; the local frame is therefore that first frame's
+    orientation about the template centroid. Templates are then fixed, so
+    that estimates in the local frames stay comparable and a saved
+    calibration stays valid.
+
+    **Statistics.** Per frame, both poses are fitted to the visible markers
+    (Stoddart eq. 4); frames where a segment's visible markers are nearly
+    collinear or bunched (rotation variance above
+    :data:`~jointfit_core.segments.POSE_VAR_RATIO_MAX` times the full
+    template's) are not used. The window keeps the sums of
+    :class:`~jointfit_core.segments.PoseSums`, of the unit-noise local pose
+    covariances of the visible marker sets, and of the pose-fit residuals;
+    ``noise_std_*`` is the pooled residual estimate over the window
+    (``sum SS / sum (3 n_vis - 6)``, not corrected for the template's own
+    degrees of freedom, which is negligible after a few dozen frames).
+
+    **Estimate.** :meth:`estimate` is
+    :func:`~jointfit_core.segments.centre_from_pose_sums` (ball; Stoddart eq.
+    9 with bias compensation and sandwich covariance) or
+    :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` (hinge) on the
+    window's sums, with the mean local pose covariances times the current
+    noise variances: identical to those functions on the window's frames.
+    The weighted (Gauss-Markov) batch fit is about 25 % more precise but
+    needs every frame; model-error inflation is batch-only too.
+
+    **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
+    ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise
+    at the centre, ``J = [-[c_p]x, I]``), from the latest :meth:`estimate`.
+    """
+
+    def __init__(
+        self,
+        kind: str = "ball",
+        window: int | None = None,
+        *,
+        window_s: float | None = None,
+        half_life: float | None = None,
+        half_life_s: float | None = None,
+        template_frames: int = 50,
+        reference_direction: ArrayLike | None = None,
+        n_markers: tuple[int, int] | None = None,
+    ) -> None:
+        if kind not in _KINDS:
+            raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
+        self.kind = kind
+        self.spec: WindowSpec = window_spec(window, window_s=window_s, half_life=half_life, half_life_s=half_life_s)
+        if isinstance(template_frames, bool) or int(template_frames) < 1:
+            raise InputError(f"template_frames: expected a positive integer, got {template_frames!r}")
+        self.template_frames = int(template_frames)
+        self.reference_direction = (
+            None
+            if reference_direction is None
+            else check_vector3(reference_direction, name="reference_direction", unit=True)
+        )
+        if n_markers is not None:
+            if len(n_markers) != 2 or min(int(n_markers[0]), int(n_markers[1])) < MIN_POSE_MARKERS:
+                raise InputError(f"n_markers: expected two counts >= {MIN_POSE_MARKERS}, got {n_markers!r}")
+            n_markers = (int(n_markers[0]), int(n_markers[1]))
+        self._n_markers_arg = n_markers
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+
+    def reset(self) -> None:
+        """Forget everything: templates, frames, estimate, frozen state and counters."""
+        self.n_markers: tuple[int, int] | None = self._n_markers_arg
+        self._parent: _Segment | None = None
+        self._child: _Segment | None = None
+        self._sums: SlidingSums | None = None
+        self._pending: list[tuple[FloatArray, FloatArray, float | None]] = []
+        self._solution: PoseSumsCentre | PoseSumsAxis | None = None
+        self._sigma = (0.0, 0.0)
+        self._dirty = False
+        self._frozen = False
+        self._last_stamp: float | None = None
+        self.dropped: dict[str, int] = {}
+        self.n_frames_seen = 0
+        self._contribution = np.zeros(_N_SUMS)
+        self._contribution[0] = 1.0
+        self._pairs: dict[bytes, _PairSet] = {}
+        self._Y = np.zeros((0, 0, 3))
+        self._world_cache: dict[bytes, tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]] = {}
+
+    @property
+    def frozen(self) -> bool:
+        """Whether the estimate is frozen (per-frame outputs continue, statistics do not)."""
+        return self._frozen
+
+    @property
+    def templates_ready(self) -> bool:
+        """Whether both templates are established."""
+        return self._parent is not None and self._parent.template is not None and self._child is not None and (
+            self._child.template is not None
+        )
+
+    @property
+    def templates(self) -> tuple[FloatArray | None, FloatArray | None]:
+        """The parent and child templates (local frames, input units), None until established."""
+        return (
+            None if self._parent is None else self._parent.template,
+            None if self._child is None else self._child.template,
+        )
+
+    @property
+    def n_window(self) -> int:
+        """Frames in the window (frames added, under forgetting)."""
+        return 0 if self._sums is None else self._sums.n_window
+
+    @property
+    def noise_std(self) -> tuple[float, float]:
+        """Marker noise estimates (parent, child) used by the latest estimate, input units."""
+        return self._sigma
+
+    @property
+    def solution(self) -> PoseSumsCentre | PoseSumsAxis | None:
+        """The latest estimate, without solving again (None before the first)."""
+        return self._solution
+
+    def status(self) -> str:
+        """What the estimator is waiting for, in words (empty when estimating)."""
+        if self._parent is None or self._child is None:
+            return "waiting for the first frame"
+        if not self.templates_ready:
+            return (
+                f"building templates from fully visible frames: parent {self._parent.template_progress}/"
+                f"{self.template_frames}, child {self._child.template_progress}/{self.template_frames}"
+            )
+        return ""
+
+    def _drop(self, reason: str) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+
+    # ------------------------------------------------------------------ streaming
+
+    def update(self, parent: ArrayLike, child: ArrayLike, stamp: float | None = None) -> JointOutput | None:
+        """Add one frame and return the joint in the world for it.
+
+        Parameters
+        ----------
+        parent, child : array_like, shape (Pa, 3) and (Pc, 3)
+            World marker positions of the two segments (input units), NaN
+            for a missing marker.
+        stamp : float, optional
+            Seconds; needed by time windows; must increase.
+
+        Returns
+        -------
+        JointOutput or None
+            The joint carried by this frame's parent pose with the latest
+            estimate; None while there is no estimate yet (templates being
+            built, nothing solved yet) or when the parent cannot be posed.
+
+        Raises
+        ------
+        InputError
+            Wrong shapes or marker counts, infinite values, a missing stamp
+            that the window needs.
+
+        Notes
+        -----
+        Frames are dropped from the statistics, and counted in
+        :attr:`dropped`, when the stamp does not increase
+        (``stamp_not_increasing``), when a segment cannot be posed from its
+        visible markers (``parent_not_posed``, ``child_not_posed``), and
+        while frozen (not counted: expected).
+        """
+        yp = check_frame(parent, None if self.n_markers is None else self.n_markers[0], name="parent")
+        yc = check_frame(child, None if self.n_markers is None else self.n_markers[1], name="child")
+        st = None if stamp is None else float(stamp)
+        if st is not None and not np.isfinite(st):
+            raise InputError(f"stamp: expected a finite number of seconds, got {stamp!r}")
+        if self.spec.needs_stamps and st is None:
+            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
+        if st is not None and self._last_stamp is not None and st <= self._last_stamp:
+            self._drop("stamp_not_increasing")
+            return None
+        if st is not None:
+            self._last_stamp = st
+        if self._parent is None or self._child is None:
+            if yp.shape[0] < MIN_POSE_MARKERS or yc.shape[0] < MIN_POSE_MARKERS:
+                raise InputError(
+                    f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got "
+                    f"{yp.shape[0]} and {yc.shape[0]}"
+                )
+            self.n_markers = (yp.shape[0], yc.shape[0])
+            self._parent = _Segment("parent", yp.shape[0], self.template_frames)
+            self._child = _Segment("child", yc.shape[0], self.template_frames)
+            self._Y = np.zeros((2, max(yp.shape[0], yc.shape[0]), 3))
+        self.n_frames_seen += 1
+
+        if not self.templates_ready:
+            self._parent.add_template_frame(yp)
+            self._child.add_template_frame(yc)
+            self._pending.append((yp.copy(), yc.copy(), st))
+            if len(self._pending) > 20 * self.template_frames:
+                self._pending.pop(0)
+                self._drop("before_templates")
+            if self.templates_ready:
+                pending, self._pending = self._pending, []
+                for p_frame, c_frame, p_stamp in pending:
+                    self._add(p_frame, c_frame, p_stamp)
+            return None
+        return self._add(yp, yc, st)
+
+    def _pair(self, vis_p: NDArray[np.bool_], vis_c: NDArray[np.bool_]) -> _PairSet:
+        key = vis_p.tobytes() + vis_c.tobytes()
+        ps = self._pairs.get(key)
+        if ps is None:
+            assert self._parent is not None and self._child is not None
+            p_max = max(self._parent.n_markers, self._child.n_markers)
+            ps = _pair_set(self._parent.visible_set(vis_p), self._child.visible_set(vis_c), p_max)
+            self._pairs[key] = ps
+        return ps
+
+    def _add(self, yp: FloatArray, yc: FloatArray, stamp: float | None) -> JointOutput | None:
+        assert self._parent is not None and self._child is not None
+        vis_p = ~np.isnan(yp[:, 0])
+        vis_c = ~np.isnan(yc[:, 0])
+        ps = self._pair(vis_p, vis_c)
+        if ps.parent is None:
+            self._drop("parent_not_posed")
+        if ps.child is None:
+            self._drop("child_not_posed")
+        if ps.parent is None and ps.child is None:
+            return None
+        Y = self._Y
+        Y[0, : yp.shape[0]] = np.where(vis_p[:, None], yp, 0.0)
+        Y[1, : yc.shape[0]] = np.where(vis_c[:, None], yc, 0.0)
+        R, d, ss = _poses(Y, ps)
+        if ps.parent is not None and ps.child is not None and not self._frozen:
+            Rp, dp, Rc, dc = R[0], d[0], R[1], d[1]
+            c = self._contribution
+            Q = Rp.T @ Rc
+            t = Rp.T @ (dc - dp)
+            qf = Q.ravel()
+            c[1:10] = qf
+            c[10:13] = t
+            c[13:16] = t @ Q
+            c[16] = t @ t
+            c[17:98] = np.multiply.outer(qf, qf).ravel()
+            c[98:170] = ps.W_flat
+            c[170:174] = (ss[0], ps.dof[0], ss[1], ps.dof[1])
+            if self._sums is None:
+                self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, _identity)
+            self._sums.push(c, stamp)
+            self._dirty = True
+        if ps.parent is None or self._solution is None:
+            return None
+        child_pose = (R[1], d[1]) if ps.child is not None else None
+        return self._world(R[0], d[0], ps.parent, child_pose)
+
+    # ------------------------------------------------------------------ estimates
+
+    def pose_sums(self) -> tuple[PoseSums, FloatArray, FloatArray, float, float]:
+        """The window's sums: ``(PoseSums, mean unit W_p (6, 6), mean unit W_c (6, 6), sigma_p, sigma_c)``.
+
+        Raises
+        ------
+        InputError
+            No frame has entered the statistics yet.
+        """
+        if self._sums is None or self._sums.sums[0] <= 0.0:
+            raise InputError(f"no frame has entered the statistics yet ({self.status() or 'no posed frame'})")
+        s = self._sums.sums
+        n = float(s[0])
+        # The sums hold vec(Q) vec(Q)^T, i.e. Q_ij Q_kl at (i, j, k, l); K = sum kron(Q, Q) at (i, k, j, l).
+        K = s[17:98].reshape(3, 3, 3, 3).transpose(0, 2, 1, 3).reshape(9, 9)
+        sums = PoseSums(n, s[1:10].reshape(3, 3), s[10:13], s[13:16], float(s[16]), K)
+        ssp, dofp, ssc, dofc = s[170:174]
+        sigma_p = float(np.sqrt(max(ssp, 0.0) / dofp)) if dofp > 0 else 0.0
+        sigma_c = float(np.sqrt(max(ssc, 0.0) / dofc)) if dofc > 0 else 0.0
+        return sums, s[98:134].reshape(6, 6) / n, s[134:170].reshape(6, 6) / n, sigma_p, sigma_c
+
+    def estimate(self) -> PoseSumsCentre | PoseSumsAxis:
+        """Solve the window's sums (or return the frozen or still current estimate).
+
+        Returns
+        -------
+        PoseSumsCentre or PoseSumsAxis
+            For ``kind`` "ball" and "hinge"; local frames are the templates'.
+
+        Raises
+        ------
+        InputError
+            Fewer than 3 frames in the statistics.
+        NotIdentifiableError
+            The window's motion cannot determine the joint at all.
+        """
+        if self._solution is not None and (self._frozen or not self._dirty):
+            return self._solution
+        sums, Wp_unit, Wc_unit, sigma_p, sigma_c = self.pose_sums()
+        assert self._parent is not None and self._child is not None
+        Wp = sigma_p**2 * Wp_unit
+        Wc = sigma_c**2 * Wc_unit
+        scale = max(self._parent.rms_radius, self._child.rms_radius)
+        sol: PoseSumsCentre | PoseSumsAxis
+        if self.kind == "ball":
+            sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale)
+        else:
+            sol = axis_from_pose_sums(
+                sums, Wp, Wc, length_scale=scale, reference_direction=self.reference_direction
+            )
+        self._solution = sol
+        self._sigma = (sigma_p, sigma_c)
+        self._world_cache = {}
+        self._dirty = False
+        return sol
+
+    def _world(
+        self, Rp: FloatArray, dp: FloatArray, vp: _VisibleSet, child_pose: tuple[FloatArray, FloatArray] | None
+    ) -> JointOutput:
+        sol = self._solution
+        assert sol is not None
+        key = vp.index.tobytes()
+        cached = self._world_cache.get(key)
+        if cached is None:
+            s2 = self._sigma[0] ** 2
+            if isinstance(sol, PoseSumsCentre):
+                local, local_cov, other = sol.centre_parent, sol.cov_parent, sol.centre_child
+            else:
+                local, local_cov, other = sol.point_parent, sol.cov_point_parent, sol.point_child
+            J = np.concatenate([-skew(local), np.eye(3)], axis=1)
+            cov_dir = None
+            if isinstance(sol, PoseSumsAxis):
+                Nx = skew(sol.direction_parent)
+                cov_dir = sol.cov_direction_parent + s2 * (Nx @ vp.W_unit[:3, :3] @ Nx.T)
+            cached = (local, local_cov + s2 * (J @ vp.W_unit @ J.T), other, cov_dir)
+            self._world_cache[key] = cached
+        local, cov_local, other, cov_dir_local = cached
+        position = Rp @ local + dp
+        cov = Rp @ cov_local @ Rp.T
+        residual = float("nan")
+        direction = cov_dir = None
+        if cov_dir_local is not None:
+            assert isinstance(sol, PoseSumsAxis)
+            direction = Rp @ sol.direction_parent
+            cov_dir = Rp @ cov_dir_local @ Rp.T
+        if child_pose is not None:
+            Rc, dc = child_pose
+            diff = position - (Rc @ other + dc)
+            if direction is not None:
+                assert isinstance(sol, PoseSumsAxis)
+                axis_c = Rc @ sol.direction_child
+                diff = diff - axis_c * (diff @ axis_c)
+            residual = float(np.sqrt(diff @ diff))
+        return JointOutput(self.kind, position, cov, direction, cov_dir, residual)
+
+    # ------------------------------------------------------------------ calibration
+
+    def freeze(self) -> PoseSumsCentre | PoseSumsAxis:
+        """Fix the current estimate; per-frame outputs continue, the statistics stop.
+
+        Raises
+        ------
+        InputError, NotIdentifiableError
+            No estimate can be made yet.
+        """
+        sol = self.estimate()
+        self._frozen = True
+        return sol
+
+    def thaw(self) -> None:
+        """Resume updating the statistics (the window holds the frames from before freezing)."""
+        self._frozen = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """The calibration as plain YAML-able types: settings, templates, noise and estimate.
+
+        Raises
+        ------
+        InputError, NotIdentifiableError
+            No estimate can be made yet.
+        """
+        sol = self.estimate()
+        p_tpl, c_tpl = self.templates
+        assert p_tpl is not None and c_tpl is not None
+        fit = fit_to_dict(sol)
+        spec = self.spec
+        return {
+            "format": CALIBRATION_FORMAT,
+            "version": CALIBRATION_VERSION,
+            "kind": self.kind,
+            "window": spec.frames,
+            "window_s": spec.seconds,
+            "half_life": spec.half_life,
+            "half_life_s": spec.half_life_s,
+            "template_frames": self.template_frames,
+            "reference_direction": None if self.reference_direction is None else self.reference_direction.tolist(),
+            "n_markers": list(self.n_markers) if self.n_markers is not None else None,
+            "template_parent": p_tpl.tolist(),
+            "template_child": c_tpl.tolist(),
+            "noise_std_parent": self._sigma[0],
+            "noise_std_child": self._sigma[1],
+            "estimate": fit,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> OnlineJoint:
+        """A frozen estimator from a saved calibration (:meth:`to_dict`).
+
+        The templates and the estimate are restored, so per-frame outputs
+        start with the first frame. :meth:`thaw` resumes estimation (with
+        the saved templates).
+
+        Raises
+        ------
+        InputError
+            Not a jointfit calibration, a newer version, or malformed fields.
+        """
+        if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
+            raise InputError(f"calibration: expected a dict with format {CALIBRATION_FORMAT!r}")
+        version = data.get("version")
+        if not isinstance(version, int) or version > CALIBRATION_VERSION or version < 1:
+            raise InputError(
+                f"calibration: version {version!r} is not supported (this jointfit reads 1..{CALIBRATION_VERSION})"
+            )
+        try:
+            est = cls(
+                str(data["kind"]),
+                data.get("window"),
+                window_s=data.get("window_s"),
+                half_life=data.get("half_life"),
+                half_life_s=data.get("half_life_s"),
+                template_frames=int(data.get("template_frames", 50)),
+                reference_direction=data.get("reference_direction"),
+                n_markers=(int(data["n_markers"][0]), int(data["n_markers"][1])),
+            )
+            tp = np.array(data["template_parent"], dtype=np.float64)
+            tc = np.array(data["template_child"], dtype=np.float64)
+            assert est.n_markers is not None
+            if tp.shape != (est.n_markers[0], 3) or tc.shape != (est.n_markers[1], 3) or not (
+                np.isfinite(tp).all() and np.isfinite(tc).all()
+            ):
+                raise InputError(
+                    f"calibration: templates of shapes {tp.shape} and {tc.shape} do not match n_markers {est.n_markers}"
+                )
+            est._parent = _Segment("parent", est.n_markers[0], est.template_frames)
+            est._child = _Segment("child", est.n_markers[1], est.template_frames)
+            est._parent.set_template(tp)
+            est._child.set_template(tc)
+            est._Y = np.zeros((2, max(est.n_markers), 3))
+            fit = data["estimate"]
+            if est.kind == "ball":
+                est._solution = fit_from_dict(PoseSumsCentre, fit)
+            else:
+                est._solution = fit_from_dict(PoseSumsAxis, fit)
+            est._sigma = (float(data["noise_std_parent"]), float(data["noise_std_child"]))
+            est._world_cache = {}
+        except InputError:
+            raise
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"calibration: a field is missing or malformed: {exc!r}") from None
+        est._frozen = True
+        return est

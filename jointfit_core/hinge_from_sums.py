@@ -1,0 +1,252 @@
+"""Hinge axis between two moving segments from running sums of relative poses.
+
+The online counterpart of :func:`jointfit_core.segments.fit_axis_two_segments`
+(closed form, no refinement over frames): everything it needs is in
+:class:`~jointfit_core.segments.PoseSums`, so an online estimator solves it in
+O(1) whatever the window length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .checks import check_vector3
+from .errors import InputError, NotIdentifiableError
+from .pose import skew
+from .segments import (
+    SINGULAR_REL,
+    PoseSums,
+    _axis_verdict,
+    _check_cov6,
+    _FrozenArrays,
+    _lever_jacobian,
+    _motion,
+)
+
+__all__ = ["PoseSumsAxis", "axis_from_pose_sums"]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class PoseSumsAxis(_FrozenArrays):
+    """Hinge axis from running sums (closed form, first-order covariances).
+
+    Attributes
+    ----------
+    direction_parent, direction_child : ndarray, shape (3,)
+        Unit axis direction in the parent and the child local frame.
+    point_parent, point_child : ndarray, shape (3,)
+        The point of the axis nearest each local origin (input units).
+    cov_direction_parent, cov_direction_child : ndarray, shape (3, 3)
+        Covariances of the directions (rank 2, orthogonal to them).
+    cov_point_parent, cov_point_child : ndarray, shape (3, 3)
+        Covariances of the points (input units squared).
+    rms : float
+        Rms of ``|c_p - Q_t c_c - t_t|`` at the fitted axis-point pair.
+    n_frames : int
+    identifiable : bool
+    reason : str
+    """
+
+    direction_parent: FloatArray
+    direction_child: FloatArray
+    point_parent: FloatArray
+    point_child: FloatArray
+    cov_direction_parent: FloatArray
+    cov_direction_child: FloatArray
+    cov_point_parent: FloatArray
+    cov_point_child: FloatArray
+    rms: float
+    n_frames: int
+    identifiable: bool
+    reason: str
+
+
+def _kq(K: FloatArray, M: FloatArray) -> FloatArray:
+    """``sum_t Q_t M Q_t^T`` from ``K = sum kron(Q_t, Q_t)``."""
+    out: FloatArray = (K @ M.ravel()).reshape(3, 3)
+    return out
+
+
+def _kqt(K: FloatArray, M: FloatArray) -> FloatArray:
+    """``sum_t Q_t^T M Q_t`` from ``K``."""
+    out: FloatArray = (K.T @ M.ravel()).reshape(3, 3)
+    return out
+
+
+def _direction_covariance(
+    U: FloatArray, s: FloatArray, V: FloatArray, n: float, K: FloatArray, rot_p: FloatArray, rot_c: FloatArray
+) -> FloatArray:
+    """Joint covariance (6, 6) of the top singular pair ``(u_0, v_0)`` of ``S = sum Q_t``.
+
+    First-order perturbation of the singular vectors under ``dQ_t = -[w_p]x Q_t + Q_t [w_c]x``
+    (local rotation errors of the two poses, independent, covariances ``rot_p`` and ``rot_c``):
+    ``du_0 = sum_k u_k (s_0 a_k + s_k b_k) / (s_0^2 - s_k^2)``,
+    ``dv_0 = sum_k v_k (s_k a_k + s_0 b_k) / (s_0^2 - s_k^2)`` with ``a_k = u_k^T dS v_0`` and
+    ``b_k = u_0^T dS v_k`` (k = 1, 2). Per frame, ``a_k = w_p . (u_k x Q v_0) - u_k^T Q [v_0]x w_c`` and
+    ``b_k = w_p . (u_0 x Q v_k) - u_0^T Q [v_k]x w_c``, so the covariance of the four sums needs only
+    ``sum Q^T M Q`` and ``sum Q M Q^T`` for fixed ``M``, i.e. ``K``.
+    """
+    u = [U[:, k] for k in range(3)]
+    v = [V[:, k] for k in range(3)]
+    # Entries of (a_1, a_2, b_1, b_2): parent part w_p . ([l]x Q r) and child part -(m^T Q [r]x w_c).
+    spec = [(u[1], v[0]), (u[2], v[0]), (u[0], v[1]), (u[0], v[2])]
+    C = np.empty((4, 4))
+    for i, (li, ri) in enumerate(spec):
+        for j, (lj, rj) in enumerate(spec):
+            parent = ri @ _kqt(K, skew(li).T @ rot_p @ skew(lj)) @ rj
+            child = li @ _kq(K, skew(ri) @ rot_c @ skew(rj).T) @ lj
+            C[i, j] = parent + child
+    L = np.zeros((6, 4))
+    for k in (1, 2):
+        den = s[0] ** 2 - s[k] ** 2
+        L[:3, k - 1] += s[0] * u[k] / den
+        L[:3, k + 1] += s[k] * u[k] / den
+        L[3:, k - 1] += s[k] * v[k] / den
+        L[3:, k + 1] += s[0] * v[k] / den
+    out: FloatArray = L @ C @ L.T
+    return out
+
+
+def axis_from_pose_sums(
+    sums: PoseSums,
+    W_parent_local: ArrayLike,
+    W_child_local: ArrayLike,
+    *,
+    length_scale: float = 0.0,
+    reference_direction: ArrayLike | None = None,
+) -> PoseSumsAxis:
+    """Hinge axis from running sums of relative poses (closed form).
+
+    Parameters
+    ----------
+    sums : PoseSums
+        Sums over the frames (:func:`jointfit_core.segments.pose_sums_from_relative`).
+    W_parent_local, W_child_local : array_like, shape (6, 6)
+        Mean local pose covariances of the two segments over the summed
+        frames, as in :func:`jointfit_core.segments.centre_from_pose_sums`.
+    length_scale : float
+        Lower bound of the lever arm used in the identifiability check.
+    reference_direction : array_like, shape (3,), optional
+        ``direction_parent`` has a non-negative dot product with it; default
+        the parent local axis along which the direction is largest.
+
+    Returns
+    -------
+    PoseSumsAxis
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 frames, badly shaped covariances or reference.
+    NotIdentifiableError
+        No relative rotation (the axis is undefined).
+
+    Notes
+    -----
+    The direction is the top singular pair of ``S = sum Q_t`` and the point
+    pair the pseudo-inverse solution of the ball-joint normal equations in
+    the complement of ``(n_p, n_c)``, as in the closed form that starts
+    :func:`~jointfit_core.segments.fit_axis_two_segments` (which then refines
+    over the frames; this does not, so it is a little less precise).
+    Covariances, first order in the pose noise: the direction pair from the
+    perturbation of the singular vectors (see :func:`_direction_covariance`);
+    the point pair from the sandwich of
+    :func:`~jointfit_core.segments.centre_from_pose_sums` with the
+    pseudo-inverse; the reported points ``c - n (n . c)`` add the along-axis
+    shift caused by the direction's uncertainty (treated as independent of
+    the point pair's). No second-order bias compensation.
+    """
+    Wp6 = _check_cov6(W_parent_local, "W_parent_local")
+    Wc6 = _check_cov6(W_child_local, "W_child_local")
+    n = float(sums.n)
+    if n < 3:
+        raise InputError(f"sums: expected at least 3 frames, got {n:g}")
+    S = np.asarray(sums.S)
+    K = np.asarray(sums.K)
+    U, s, Vt = np.linalg.svd(S)
+    V = Vt.T
+    deficit = np.clip(1.0 - s / n, 0.0, None)
+    if deficit[1] <= SINGULAR_REL:
+        raise NotIdentifiableError(
+            "no relative rotation between the child and the parent: the hinge axis is undefined; flex the joint"
+        )
+    n_p, n_c = U[:, 0].copy(), V[:, 0].copy()
+    if reference_direction is not None:
+        ref = check_vector3(reference_direction, name="reference_direction", unit=True)
+    else:
+        ref = np.zeros(3)
+        ref[int(np.argmax(np.abs(n_p)))] = 1.0
+    flip = 1.0 if n_p @ ref >= 0.0 else -1.0
+
+    # Pseudo-inverse of H = [[N I, -S], [-S^T, N I]] without the gauge direction (u_0, v_0)/sqrt2.
+    g = np.concatenate([sums.sum_t, -np.asarray(sums.sum_qt_t)])
+    E = []
+    lam = []
+    for k in range(3):
+        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
+            if k == 0 and sign > 0:
+                continue
+            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
+            lam.append(value)
+    Em = np.stack(E, axis=1)  # (6, 5)
+    H_pinv = (Em / np.asarray(lam)) @ Em.T
+    a = H_pinv @ g
+    c_p, c_c = a[:3], a[3:]
+
+    # Sandwich covariance of the point pair (as centre_from_pose_sums, with the pseudo-inverse).
+    Jp, Jc = _lever_jacobian(c_p), _lever_jacobian(c_c)
+    W_p = Jp @ Wp6 @ Jp.T
+    W_c = Jc @ Wc6 @ Jc.T
+    B = np.empty((6, 6))
+    B[:3, :3] = n * W_p + _kq(K, W_c)
+    B[:3, 3:] = -(W_p @ S + S @ W_c)
+    B[3:, :3] = B[:3, 3:].T
+    B[3:, 3:] = _kqt(K, W_p) + n * W_c
+    cov_a = H_pinv @ B @ H_pinv
+
+    cov_dir = _direction_covariance(U, s, V, n, K, Wp6[:3, :3], Wc6[:3, :3])
+    n_p, n_c = flip * n_p, flip * n_c
+    point_p = c_p - n_p * (n_p @ c_p)
+    point_c = c_c - n_c * (n_c @ c_c)
+    P_p = np.eye(3) - np.outer(n_p, n_p)
+    P_c = np.eye(3) - np.outer(n_c, n_c)
+    Jn_p = -((n_p @ c_p) * np.eye(3) + np.outer(n_p, c_p))
+    Jn_c = -((n_c @ c_c) * np.eye(3) + np.outer(n_c, c_c))
+    cov_dir_p, cov_dir_c = cov_dir[:3, :3], cov_dir[3:, 3:]
+    cov_pt_p = P_p @ cov_a[:3, :3] @ P_p + Jn_p @ cov_dir_p @ Jn_p.T
+    cov_pt_c = P_c @ cov_a[3:, 3:] @ P_c + Jn_c @ cov_dir_c @ Jn_c.T
+
+    ss = (
+        n * (c_p @ c_p + c_c @ c_c)
+        + sums.sum_tt
+        - 2.0 * c_p @ S @ c_c
+        - 2.0 * c_p @ sums.sum_t
+        + 2.0 * c_c @ sums.sum_qt_t
+    )
+    mo = _motion(S, n, Wp6[:3, :3], _kq(K, Wc6[:3, :3]) / n)
+    identifiable, reason = _axis_verdict(
+        mo, cov_dir_p, cov_dir_c, cov_pt_p, cov_pt_c, point_p, point_c, length_scale
+    )
+
+    def sym(m: FloatArray) -> FloatArray:
+        return 0.5 * (m + m.T)
+
+    return PoseSumsAxis(
+        direction_parent=n_p,
+        direction_child=n_c,
+        point_parent=point_p,
+        point_child=point_c,
+        cov_direction_parent=sym(cov_dir_p),
+        cov_direction_child=sym(cov_dir_c),
+        cov_point_parent=sym(cov_pt_p),
+        cov_point_child=sym(cov_pt_c),
+        rms=float(np.sqrt(max(float(ss), 0.0) / n)),
+        n_frames=round(n),
+        identifiable=identifiable,
+        reason=reason,
+    )

@@ -1,0 +1,429 @@
+"""Sliding-window sums of per-frame contributions, O(1) per frame with bounded drift.
+
+The online estimators keep, for the frames of a window, the sums of fixed-size
+per-frame contribution vectors (counts, moments, pose products). Adding the
+newest frame and subtracting the frames that leave costs the same whatever
+the window length; the raw records of the window stay in a ring buffer so
+that leaving frames can be subtracted.
+
+Drift. Repeated add/subtract accumulates rounding error without bound, and
+sums about a reference point that no longer lies near the data lose digits
+by cancellation. :class:`SlidingSums` bounds both: a *shadow* copy of the sums
+is rebuilt from the ring buffer one frame per update (about a fresh
+reference point at the data's current mean), and replaces the live sums when
+it has covered the window. So the sums in use always come from at most about
+two window lengths of add/subtract steps, and every update does the same,
+constant amount of work (no periodic O(window) spike).
+
+Exponential forgetting needs no ring buffer: the sums decay by a constant
+factor per frame (or per second), so old rounding errors decay with them;
+the reference point is moved by an exact shift of the sums when the data
+have wandered from it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import InputError
+
+__all__ = ["WindowSpec", "SlidingSums", "window_spec"]
+
+FloatArray = NDArray[np.float64]
+
+#: Contribution function: records (m, R) and reference points (m, 3) -> contributions (m, L).
+ContribFn = Callable[[FloatArray, FloatArray], FloatArray]
+#: Exact shift of a sums vector (L,) from reference point ``old`` to ``new`` (3,).
+ShiftFn = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
+#: New reference point (3,) from the sums (L,) about ``ref``, or None to keep ``ref``.
+RefFn = Callable[[FloatArray, FloatArray], "FloatArray | None"]
+
+#: Under exponential forgetting, check every this many frames whether to move the reference point.
+_REREF_EVERY = 256
+
+
+@dataclass(frozen=True)
+class WindowSpec:
+    """Which frames the sums cover. Exactly one field is set.
+
+    Attributes
+    ----------
+    frames : int or None
+        The last ``frames`` accepted frames.
+    seconds : float or None
+        Frames whose stamp is within ``seconds`` of the newest stamp
+        (``stamp > newest - seconds``); needs stamps.
+    half_life : float or None
+        Exponential forgetting: a frame's weight halves every ``half_life``
+        frames.
+    half_life_s : float or None
+        Exponential forgetting in time: a frame's weight halves every
+        ``half_life_s`` seconds of stamp time; needs stamps.
+    """
+
+    frames: int | None = None
+    seconds: float | None = None
+    half_life: float | None = None
+    half_life_s: float | None = None
+
+    @property
+    def exponential(self) -> bool:
+        """True for exponential forgetting (no ring buffer)."""
+        return self.half_life is not None or self.half_life_s is not None
+
+    @property
+    def needs_stamps(self) -> bool:
+        """True when every update must carry a stamp."""
+        return self.seconds is not None or self.half_life_s is not None
+
+    def describe(self) -> str:
+        """Short human-readable form, e.g. ``"500 frames"``."""
+        if self.frames is not None:
+            return f"{self.frames} frames"
+        if self.seconds is not None:
+            return f"{self.seconds:g} s"
+        if self.half_life is not None:
+            return f"half-life {self.half_life:g} frames"
+        return f"half-life {self.half_life_s:g} s"
+
+
+def window_spec(
+    window: int | None = None,
+    *,
+    window_s: float | None = None,
+    half_life: float | None = None,
+    half_life_s: float | None = None,
+) -> WindowSpec:
+    """Check and build a :class:`WindowSpec` from the estimators' keyword arguments.
+
+    Raises
+    ------
+    InputError
+        Not exactly one of the four given, or a value that is not positive
+        (``window`` must be an integer >= 3).
+    """
+    given = {
+        k: v
+        for k, v in (("window", window), ("window_s", window_s), ("half_life", half_life), ("half_life_s", half_life_s))
+        if v is not None
+    }
+    if len(given) != 1:
+        raise InputError(
+            "window: give exactly one of window (frames), window_s (seconds), half_life (frames) or "
+            f"half_life_s (seconds), got {sorted(given) or 'none'}"
+        )
+    name, value = next(iter(given.items()))
+    if name == "window":
+        if isinstance(value, bool) or not float(value).is_integer() or int(value) < 3:
+            raise InputError(f"window: expected an integer number of frames >= 3, got {value!r}")
+        return WindowSpec(frames=int(value))
+    try:
+        num = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected a positive number, got {value!r}") from None
+    if not np.isfinite(num) or num <= 0.0:
+        raise InputError(f"{name}: expected a positive finite number, got {value!r}")
+    if name == "window_s":
+        return WindowSpec(seconds=num)
+    if name == "half_life":
+        return WindowSpec(half_life=num)
+    return WindowSpec(half_life_s=num)
+
+
+class SlidingSums:
+    """Sums of per-frame contribution vectors over a sliding window.
+
+    Parameters
+    ----------
+    spec : WindowSpec
+        Which frames are summed.
+    record_size : int
+        Length R of the raw record kept per frame (e.g. ``3 P`` coordinates).
+    n_sums : int
+        Length L of a contribution vector.
+    contrib : callable
+        ``contrib(records (m, R), refs (m, 3)) -> (m, L)``: contributions of
+        ``m`` records about their reference points. Must be exactly additive
+        over frames (sums of per-frame terms).
+    ref_of : callable, optional
+        ``ref_of(sums (L,), ref (3,)) -> (3,) or None``: a reference point near
+        the summed data (e.g. their mean). None: the reference stays at the
+        origin (contributions that do not depend on it).
+    first_ref : callable, optional
+        ``first_ref(record (R,)) -> (3,)``: reference point for the first frame.
+    shift : callable, optional
+        ``shift(sums, old_ref, new_ref) -> sums``: exact re-referencing,
+        needed only for exponential forgetting with a ``ref_of``.
+    count_index : ndarray of int, optional
+        Entries of the contribution that are plain weights (counts); for
+        exponential forgetting their sums of squared weights are also kept
+        (:attr:`counts_sq`), which effective degrees of freedom need.
+    max_frames : int
+        Capacity limit of the ring buffer for time windows (frames beyond it
+        leave early). Default 1 000 000.
+
+    Notes
+    -----
+    Frame windows keep a ring buffer of ``frames`` records; time windows a
+    ring that grows by doubling up to ``max_frames``. Each :meth:`push`
+    computes the contributions of the new frame, of the leaving frames and
+    of one frame of the shadow rebuild in a single vectorised call.
+    """
+
+    def __init__(
+        self,
+        spec: WindowSpec,
+        record_size: int,
+        n_sums: int,
+        contrib: ContribFn,
+        *,
+        ref_of: RefFn | None = None,
+        first_ref: Callable[[FloatArray], FloatArray] | None = None,
+        shift: ShiftFn | None = None,
+        count_index: NDArray[np.intp] | None = None,
+        max_frames: int = 1_000_000,
+    ) -> None:
+        self.spec = spec
+        self.record_size = int(record_size)
+        self.n_sums = int(n_sums)
+        self._contrib = contrib
+        self._ref_of = ref_of
+        self._first_ref = first_ref
+        self._shift = shift
+        self._count_index = np.zeros(0, dtype=np.intp) if count_index is None else np.asarray(count_index)
+        self._max_frames = int(max_frames)
+        cap = spec.frames if spec.frames is not None else (0 if spec.exponential else 64)
+        # Without a reference point the contributions never change, so the ring keeps them
+        # (leaving frames are subtracted without recomputing); otherwise it keeps the records.
+        self._store_contrib = ref_of is None
+        self._width = self.n_sums if self._store_contrib else self.record_size
+        self._rec = np.empty((cap, self._width))
+        self._stamp = np.empty(cap)
+        if spec.exponential:
+            hl = spec.half_life if spec.half_life is not None else spec.half_life_s
+            self._log_decay = -np.log(2.0) / float(hl)  # type: ignore[arg-type]
+        self.clear()
+
+    # ------------------------------------------------------------------ state
+
+    def clear(self) -> None:
+        """Forget every frame."""
+        self.ref = np.zeros(3)
+        self.sums = np.zeros(self.n_sums)
+        self._counts_sq = np.zeros(self._count_index.size)
+        self.n_pushed = 0
+        self.last_stamp: float | None = None
+        self._lo = 0  # absolute index of the oldest frame in the window
+        self._hi = 0  # one past the newest
+        self._shadow_active = False
+        self._shadow = np.zeros(self.n_sums)
+        self._shadow_ref = np.zeros(3)
+        self._shadow_end = 0
+        self._shadow_next = 0
+
+    @property
+    def n_window(self) -> int:
+        """Number of frames currently in the window (ring modes; for forgetting, frames pushed)."""
+        return self.n_pushed if self.spec.exponential else self._hi - self._lo
+
+    def window_records(self) -> FloatArray:
+        """Copy of the records in the window, oldest first, shape (n, R) (ring modes only).
+
+        When the sums use no reference point the ring keeps the contributions
+        instead, shape (n, L).
+        """
+        if self.spec.exponential:
+            raise InputError("window_records: exponential forgetting keeps no records")
+        idx = np.arange(self._lo, self._hi) % max(self._rec.shape[0], 1)
+        return self._rec[idx].copy()
+
+    def window_stamps(self) -> FloatArray:
+        """Stamps of the records in the window (NaN when not stamped), shape (n,)."""
+        if self.spec.exponential:
+            raise InputError("window_stamps: exponential forgetting keeps no records")
+        idx = np.arange(self._lo, self._hi) % max(self._rec.shape[0], 1)
+        return self._stamp[idx].copy()
+
+    # ------------------------------------------------------------------ updates
+
+    def push(self, record: FloatArray, stamp: float | None = None) -> None:
+        """Add one frame's record (and drop the frames that leave the window).
+
+        Parameters
+        ----------
+        record : ndarray, shape (R,)
+            Already checked by the caller.
+        stamp : float, optional
+            Seconds; required by time windows and time half-lives, and must
+            increase (the caller drops frames whose stamp does not).
+        """
+        if self.spec.needs_stamps and stamp is None:
+            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
+        if self.n_pushed == 0 and self._first_ref is not None:
+            self.ref = np.asarray(self._first_ref(record), dtype=np.float64)
+        if self.spec.exponential:
+            self._push_decay(record, stamp)
+        else:
+            self._push_ring(record, stamp)
+        self.n_pushed += 1
+        if stamp is not None:
+            self.last_stamp = float(stamp)
+
+    def _push_decay(self, record: FloatArray, stamp: float | None) -> None:
+        if self.n_pushed > 0:
+            if self.spec.half_life_s is not None:
+                assert stamp is not None and self.last_stamp is not None  # checked in push
+                steps = max(float(stamp) - self.last_stamp, 0.0)
+            else:
+                steps = 1.0
+            decay = float(np.exp(self._log_decay * steps))
+            self.sums *= decay
+            self._counts_sq *= decay * decay
+        c = self._contrib(record[None, :], self.ref[None, :])[0]
+        self.sums += c
+        self._counts_sq += c[self._count_index] ** 2
+        if self._ref_of is not None and self._shift is not None and self.n_pushed % _REREF_EVERY == _REREF_EVERY - 1:
+            new_ref = self._ref_of(self.sums, self.ref)
+            if new_ref is not None:
+                self.sums = self._shift(self.sums, self.ref, new_ref)
+                self.ref = new_ref
+
+    def _grow(self) -> None:
+        cap = self._rec.shape[0]
+        new_cap = min(2 * cap, self._max_frames)
+        idx = np.arange(self._lo, self._hi) % cap
+        rec = np.empty((new_cap, self._width))
+        stamp = np.empty(new_cap)
+        rec[np.arange(self._lo, self._hi) % new_cap] = self._rec[idx]
+        stamp[np.arange(self._lo, self._hi) % new_cap] = self._stamp[idx]
+        self._rec, self._stamp = rec, stamp
+
+    def _push_ring(self, record: FloatArray, stamp: float | None) -> None:
+        # Frames that leave: the oldest for a frame window, the stale ones for a time window.
+        lo, hi = self._lo, self._hi
+        cap = self._rec.shape[0]
+        new_lo = lo
+        if self.spec.frames is not None:
+            if hi - lo >= self.spec.frames:
+                new_lo = lo + 1
+        else:
+            new_lo = self._time_lo(float(stamp))  # type: ignore[arg-type]
+            cap = self._rec.shape[0]
+        leaving = [i % cap for i in range(lo, new_lo)]
+        if self._store_contrib:
+            c_new = self._contrib(record[None, :], self.ref[None, :])[0]
+            self._push_contrib(c_new, stamp, leaving, new_lo, cap)
+            return
+
+        # One block of rows: new and leaving frames about the live reference, then the
+        # shadow's rows (new, leaving frames it already holds, one rebuilt frame) about its own.
+        inside: list[int] = []
+        chunk: list[int] = []
+        if self._shadow_active:
+            inside = [i % cap for i in range(lo, min(new_lo, self._shadow_next))]
+            self._shadow_next = max(self._shadow_next, new_lo)
+            if self._shadow_next < self._shadow_end:
+                chunk = [self._shadow_next % cap]
+                self._shadow_next += 1
+        n_live = 1 + len(leaving)
+        n_rows = n_live + ((1 + len(inside) + len(chunk)) if self._shadow_active else 0)
+        block = np.empty((n_rows, self.record_size))
+        refs = np.empty((n_rows, 3))
+        block[0] = record
+        block[1:n_live] = self._rec[leaving]
+        refs[:n_live] = self.ref
+        signs = np.ones(n_rows)
+        signs[1:n_live] = -1.0
+        if self._shadow_active:
+            block[n_live] = record
+            block[n_live + 1 : n_live + 1 + len(inside)] = self._rec[inside]
+            block[n_rows - len(chunk) :] = self._rec[chunk]
+            refs[n_live:] = self._shadow_ref
+            signs[n_live + 1 : n_live + 1 + len(inside)] = -1.0
+        c = self._contrib(block, refs)
+        self.sums += signs[:n_live] @ c[:n_live]
+        if self._shadow_active:
+            self._shadow += signs[n_live:] @ c[n_live:]
+
+        # Store the new record.
+        slot = hi % cap
+        self._rec[slot] = record
+        self._stamp[slot] = np.nan if stamp is None else float(stamp)
+        self._lo = new_lo
+        self._hi = hi + 1
+
+        if self._shadow_active and self._shadow_next >= self._shadow_end:
+            self.sums = self._shadow
+            self.ref = self._shadow_ref
+            self._shadow_active = False
+        if not self._shadow_active:
+            self._start_shadow()
+
+    @property
+    def counts_sq(self) -> FloatArray:
+        """Sums of squared weights of the count entries (equal to the counts in ring modes)."""
+        if self.spec.exponential:
+            return self._counts_sq
+        out: FloatArray = self.sums[self._count_index]
+        return out
+
+    def _time_lo(self, stamp: float) -> int:
+        """Oldest frame kept by a time window after adding a frame at ``stamp`` (grows the ring if needed)."""
+        lo, hi = self._lo, self._hi
+        cap = self._rec.shape[0]
+        horizon = stamp - float(self.spec.seconds)  # type: ignore[arg-type]
+        new_lo = lo
+        while new_lo < hi and self._stamp[new_lo % cap] <= horizon:
+            new_lo += 1
+        if hi - new_lo >= cap:
+            if cap < self._max_frames:
+                self._grow()
+            else:
+                new_lo = hi - cap + 1
+        return new_lo
+
+    def _push_contrib(
+        self, c_new: FloatArray, stamp: float | None, leaving: list[int], new_lo: int, cap: int
+    ) -> None:
+        """Ring of stored contributions: subtract and re-add them, never recompute."""
+        lo, hi = self._lo, self._hi
+        rec = self._rec
+        self.sums += c_new
+        if len(leaving) == 1:
+            self.sums -= rec[leaving[0]]
+        elif leaving:
+            self.sums -= rec[leaving].sum(axis=0)
+        if self._shadow_active:
+            self._shadow += c_new
+            inside = [i % cap for i in range(lo, min(new_lo, self._shadow_next))]
+            if len(inside) == 1:
+                self._shadow -= rec[inside[0]]
+            elif inside:
+                self._shadow -= rec[inside].sum(axis=0)
+            self._shadow_next = max(self._shadow_next, new_lo)
+            if self._shadow_next < self._shadow_end:
+                self._shadow += rec[self._shadow_next % cap]
+                self._shadow_next += 1
+        slot = hi % cap
+        rec[slot] = c_new  # a copy: the caller may reuse its buffer
+        self._stamp[slot] = np.nan if stamp is None else float(stamp)
+        self._lo = new_lo
+        self._hi = hi + 1
+        if self._shadow_active and self._shadow_next >= self._shadow_end:
+            self.sums = self._shadow
+            self._shadow_active = False
+        if not self._shadow_active:
+            self._start_shadow()
+
+    def _start_shadow(self) -> None:
+        """Begin rebuilding the window's sums from the ring, about a fresh reference point."""
+        new_ref = self._ref_of(self.sums, self.ref) if self._ref_of is not None else None
+        self._shadow_ref = self.ref.copy() if new_ref is None else np.asarray(new_ref, dtype=np.float64)
+        self._shadow = np.zeros(self.n_sums)
+        self._shadow_next = self._lo
+        self._shadow_end = self._hi
+        self._shadow_active = True
