@@ -164,6 +164,8 @@ class _OnlineMoments:
             return self._drop("frozen")
         if st is not None and self._last_stamp is not None and st <= self._last_stamp:
             return self._drop("stamp_not_increasing")
+        if st is not None:
+            self._last_stamp = st  # an empty frame still marks the time: a repeat of it is a duplicate
         if np.isnan(arr).all():
             return self._drop("empty")
         if self._sums is None:
@@ -179,8 +181,6 @@ class _OnlineMoments:
                 count_index=np.arange(self.n_markers),
             )
         self._sums.push(arr.ravel(), st)
-        if st is not None:
-            self._last_stamp = st
         return True
 
     @property

@@ -196,7 +196,9 @@ class SlidingSums:
         self._shift = shift
         self._count_index = np.zeros(0, dtype=np.intp) if count_index is None else np.asarray(count_index)
         self._max_frames = int(max_frames)
-        cap = spec.frames if spec.frames is not None else (0 if spec.exponential else 64)
+        if isinstance(max_frames, bool) or int(max_frames) < 1:
+            raise InputError(f"max_frames: expected a positive integer, got {max_frames!r}")
+        cap = spec.frames if spec.frames is not None else (0 if spec.exponential else min(64, int(max_frames)))
         # Without a reference point the contributions never change, so the ring keeps them
         # (leaving frames are subtracted without recomputing); otherwise it keeps the records.
         self._store_contrib = ref_of is None
@@ -324,7 +326,7 @@ class SlidingSums:
         inside: list[int] = []
         chunk: list[int] = []
         if self._shadow_active:
-            inside = [i % cap for i in range(lo, min(new_lo, self._shadow_next))]
+            inside = self._shadow_leaving(lo, new_lo, cap)
             self._shadow_next = max(self._shadow_next, new_lo)
             if self._shadow_next < self._shadow_end:
                 chunk = [self._shadow_next % cap]
@@ -399,7 +401,7 @@ class SlidingSums:
             self.sums -= rec[leaving].sum(axis=0)
         if self._shadow_active:
             self._shadow += c_new
-            inside = [i % cap for i in range(lo, min(new_lo, self._shadow_next))]
+            inside = self._shadow_leaving(lo, new_lo, cap)
             if len(inside) == 1:
                 self._shadow -= rec[inside[0]]
             elif inside:
@@ -418,6 +420,14 @@ class SlidingSums:
             self._shadow_active = False
         if not self._shadow_active:
             self._start_shadow()
+
+    def _shadow_leaving(self, lo: int, new_lo: int, cap: int) -> list[int]:
+        """Ring slots of the leaving frames [lo, new_lo) that the shadow already holds.
+
+        Those are the rebuilt ones (below ``_shadow_next``) and the ones added since the rebuild
+        began (from ``_shadow_end`` on; a time window can drop those too when stamps jump).
+        """
+        return [i % cap for i in range(lo, new_lo) if i < self._shadow_next or i >= self._shadow_end]
 
     def _start_shadow(self) -> None:
         """Begin rebuilding the window's sums from the ring, about a fresh reference point."""
