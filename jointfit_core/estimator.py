@@ -26,7 +26,7 @@ from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
 from .segments import POSE_VAR_RATIO_MAX, PoseSums, PoseSumsCentre, centre_from_pose_sums
 from .stats import SlidingSums, WindowSpec, window_spec
 
-__all__ = ["OnlineJoint", "JointOutput", "CALIBRATION_FORMAT", "CALIBRATION_VERSION"]
+__all__ = ["OnlineJoint", "JointOutput", "virtual_markers_template", "CALIBRATION_FORMAT", "CALIBRATION_VERSION"]
 
 FloatArray = NDArray[np.float64]
 
@@ -310,6 +310,42 @@ def _shape_ok(points: FloatArray) -> bool:
     return bool(points.shape[0] >= MIN_POSE_MARKERS and lam[2] > 0 and lam[1] > COLLINEAR_RTOL**2 * lam[2])
 
 
+def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple[FloatArray, float]:
+    """Virtual markers that stand for a rigid-body pose with the given noise.
+
+    A pose stream (e.g. ``geometry_msgs/PoseStamped`` from a mocap rigid
+    body) is turned into four virtual markers ``R x_i + d`` at the vertices
+    of a regular tetrahedron ``x_i``. Fitting them with marker noise
+    ``sigma`` per coordinate gives a pose whose translation has standard
+    deviation ``sigma / 2`` per axis and whose rotation has ``sigma / (L
+    sqrt(8/3))`` radians per axis (``L`` the vertex radius); choosing
+    ``sigma = 2 translation_sd`` and ``L = sigma / (rotation_sd sqrt(8/3))``
+    reproduces the pose noise the user states.
+
+    Parameters
+    ----------
+    translation_sd : float
+        Standard deviation of the pose's position per axis (input units).
+    rotation_sd : float
+        Standard deviation of its orientation per axis (radians).
+
+    Returns
+    -------
+    template : ndarray, shape (4, 3)
+        Vertex coordinates in the body frame (centroid at the origin).
+    noise_std : float
+        The marker noise ``sigma`` to give :class:`OnlineJoint`.
+    """
+    if not (np.isfinite(translation_sd) and translation_sd > 0 and np.isfinite(rotation_sd) and rotation_sd > 0):
+        raise InputError(
+            f"pose noise: expected positive translation and rotation sd, got {translation_sd!r}, {rotation_sd!r}"
+        )
+    sigma = 2.0 * float(translation_sd)
+    radius = sigma / (float(rotation_sd) * np.sqrt(8.0 / 3.0))
+    tetra = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]) / np.sqrt(3.0)
+    return radius * tetra, sigma
+
+
 # --------------------------------------------------------------------------- the estimator
 
 
@@ -338,6 +374,15 @@ class OnlineJoint:
     n_markers : (int, int), optional
         Expected marker counts of the parent and the child (default: from
         the first frame). At least 3 each.
+    templates : (array_like, array_like), optional
+        Fixed templates ``(Pa, 3)`` and ``(Pc, 3)`` (local frames, input
+        units) instead of building them from the first frames; e.g. the
+        virtual markers of a rigid-body pose stream
+        (:func:`virtual_markers_template`).
+    noise_std : (float, float), optional
+        Fixed marker noise of the parent and the child (input units)
+        instead of the residual estimate; needed with virtual markers, whose
+        pose fits have no residual.
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -386,6 +431,8 @@ class OnlineJoint:
         template_frames: int = 50,
         reference_direction: ArrayLike | None = None,
         n_markers: tuple[int, int] | None = None,
+        templates: tuple[ArrayLike, ArrayLike] | None = None,
+        noise_std: tuple[float, float] | None = None,
     ) -> None:
         if kind not in _KINDS:
             raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
@@ -403,13 +450,34 @@ class OnlineJoint:
             if len(n_markers) != 2 or min(int(n_markers[0]), int(n_markers[1])) < MIN_POSE_MARKERS:
                 raise InputError(f"n_markers: expected two counts >= {MIN_POSE_MARKERS}, got {n_markers!r}")
             n_markers = (int(n_markers[0]), int(n_markers[1]))
+        self._templates_arg: tuple[FloatArray, FloatArray] | None = None
+        if templates is not None:
+            tpl = tuple(np.array(x, dtype=np.float64) for x in templates)
+            if len(tpl) != 2 or any(x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < MIN_POSE_MARKERS for x in tpl):
+                raise InputError(f"templates: expected two arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
+            if not all(np.isfinite(x).all() and _shape_ok(x) for x in tpl):
+                raise InputError("templates: expected finite, non-collinear template points")
+            shapes = (tpl[0].shape[0], tpl[1].shape[0])
+            if n_markers is not None and n_markers != shapes:
+                raise InputError(f"templates: marker counts {shapes} differ from n_markers {n_markers}")
+            n_markers = shapes
+            self._templates_arg = (tpl[0], tpl[1])
+        self._noise_arg: tuple[float, float] | None = None
+        if noise_std is not None:
+            try:
+                sp, sc = float(noise_std[0]), float(noise_std[1])
+            except (TypeError, ValueError, IndexError):
+                raise InputError(f"noise_std: expected two numbers > 0, got {noise_std!r}") from None
+            if not (np.isfinite(sp) and np.isfinite(sc) and sp > 0 and sc > 0):
+                raise InputError(f"noise_std: expected two finite numbers > 0, got {noise_std!r}")
+            self._noise_arg = (sp, sc)
         self._n_markers_arg = n_markers
         self.reset()
 
     # ------------------------------------------------------------------ state
 
     def reset(self) -> None:
-        """Forget everything: templates, frames, estimate, frozen state and counters."""
+        """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
         self.n_markers: tuple[int, int] | None = self._n_markers_arg
         self._parent: _Segment | None = None
         self._child: _Segment | None = None
@@ -427,6 +495,12 @@ class OnlineJoint:
         self._pairs: dict[bytes, _PairSet] = {}
         self._Y = np.zeros((0, 0, 3))
         self._world_cache: dict[bytes, tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]] = {}
+        if self._templates_arg is not None:
+            assert self.n_markers is not None
+            self._make_segments(*self.n_markers)
+            assert self._parent is not None and self._child is not None
+            self._parent.set_template(self._templates_arg[0])
+            self._child.set_template(self._templates_arg[1])
 
     @property
     def frozen(self) -> bool:
@@ -473,6 +547,13 @@ class OnlineJoint:
                 f"{self.template_frames}, child {self._child.template_progress}/{self.template_frames}"
             )
         return ""
+
+    def _make_segments(self, n_parent: int, n_child: int) -> None:
+        self.n_markers = (n_parent, n_child)
+        self._parent = _Segment("parent", n_parent, self.template_frames)
+        self._child = _Segment("child", n_child, self.template_frames)
+        self._Y = np.zeros((2, max(n_parent, n_child), 3))
+        self._pairs = {}
 
     def _drop(self, reason: str) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
@@ -529,10 +610,8 @@ class OnlineJoint:
                     f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got "
                     f"{yp.shape[0]} and {yc.shape[0]}"
                 )
-            self.n_markers = (yp.shape[0], yc.shape[0])
-            self._parent = _Segment("parent", yp.shape[0], self.template_frames)
-            self._child = _Segment("child", yc.shape[0], self.template_frames)
-            self._Y = np.zeros((2, max(yp.shape[0], yc.shape[0]), 3))
+            self._make_segments(yp.shape[0], yc.shape[0])
+        assert self._parent is not None and self._child is not None
         self.n_frames_seen += 1
 
         if not self.templates_ready:
@@ -636,6 +715,8 @@ class OnlineJoint:
         if self._solution is not None and (self._frozen or not self._dirty):
             return self._solution
         sums, Wp_unit, Wc_unit, sigma_p, sigma_c = self.pose_sums()
+        if self._noise_arg is not None:
+            sigma_p, sigma_c = self._noise_arg
         assert self._parent is not None and self._child is not None
         Wp = sigma_p**2 * Wp_unit
         Wc = sigma_c**2 * Wc_unit
@@ -738,6 +819,8 @@ class OnlineJoint:
             "template_child": c_tpl.tolist(),
             "noise_std_parent": self._sigma[0],
             "noise_std_child": self._sigma[1],
+            "noise_std_fixed": self._noise_arg is not None,
+            "templates_fixed": self._templates_arg is not None,
             "estimate": fit,
         }
 
@@ -771,6 +854,11 @@ class OnlineJoint:
                 template_frames=int(data.get("template_frames", 50)),
                 reference_direction=data.get("reference_direction"),
                 n_markers=(int(data["n_markers"][0]), int(data["n_markers"][1])),
+                noise_std=(
+                    (float(data["noise_std_parent"]), float(data["noise_std_child"]))
+                    if data.get("noise_std_fixed")
+                    else None
+                ),
             )
             tp = np.array(data["template_parent"], dtype=np.float64)
             tc = np.array(data["template_child"], dtype=np.float64)
@@ -781,11 +869,12 @@ class OnlineJoint:
                 raise InputError(
                     f"calibration: templates of shapes {tp.shape} and {tc.shape} do not match n_markers {est.n_markers}"
                 )
-            est._parent = _Segment("parent", est.n_markers[0], est.template_frames)
-            est._child = _Segment("child", est.n_markers[1], est.template_frames)
+            est._make_segments(*est.n_markers)
+            assert est._parent is not None and est._child is not None
             est._parent.set_template(tp)
             est._child.set_template(tc)
-            est._Y = np.zeros((2, max(est.n_markers), 3))
+            if data.get("templates_fixed"):
+                est._templates_arg = (tp, tc)
             fit = data["estimate"]
             if est.kind == "ball":
                 est._solution = fit_from_dict(PoseSumsCentre, fit)
