@@ -71,11 +71,6 @@ class JointOutput:
     residual: float
 
 
-def _identity(records: FloatArray, refs: FloatArray) -> FloatArray:
-    """The estimator pushes contribution vectors directly (see :meth:`OnlineJoint._add`)."""
-    return records
-
-
 # --------------------------------------------------------------------------- per-frame poses
 
 
@@ -492,6 +487,7 @@ class OnlineJoint:
         self.n_frames_seen = 0
         self._contribution = np.zeros(_N_SUMS)
         self._contribution[0] = 1.0
+        self._outer_view = self._contribution[17:98].reshape(9, 9)  # a view: written in place
         self._pairs: dict[bytes, _PairSet] = {}
         self._Y = np.zeros((0, 0, 3))
         self._world_cache: dict[bytes, tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]] = {}
@@ -547,6 +543,11 @@ class OnlineJoint:
                 f"{self.template_frames}, child {self._child.template_progress}/{self.template_frames}"
             )
         return ""
+
+    def set_reference_direction(self, direction: ArrayLike) -> None:
+        """Set the hinge sign convention (a direction in the parent local frame); the next estimate follows it."""
+        self.reference_direction = check_vector3(direction, name="reference_direction", unit=True)
+        self._dirty = True
 
     def _make_segments(self, n_parent: int, n_child: int) -> None:
         self.n_markers = (n_parent, n_child)
@@ -628,30 +629,35 @@ class OnlineJoint:
             return None
         return self._add(yp, yc, st)
 
-    def _pair(self, vis_p: NDArray[np.bool_], vis_c: NDArray[np.bool_]) -> _PairSet:
-        key = vis_p.tobytes() + vis_c.tobytes()
+    def _pair(self, missing: NDArray[np.bool_]) -> _PairSet:
+        """Cached pair set for the missing-marker mask (2, Pmax) of ``self._Y`` (padding rows count as present)."""
+        key = missing.tobytes()
         ps = self._pairs.get(key)
         if ps is None:
             assert self._parent is not None and self._child is not None
-            p_max = max(self._parent.n_markers, self._child.n_markers)
-            ps = _pair_set(self._parent.visible_set(vis_p), self._child.visible_set(vis_c), p_max)
+            pa, pc = self._parent.n_markers, self._child.n_markers
+            ps = _pair_set(
+                self._parent.visible_set(~missing[0, :pa]),
+                self._child.visible_set(~missing[1, :pc]),
+                max(pa, pc),
+            )
             self._pairs[key] = ps
         return ps
 
     def _add(self, yp: FloatArray, yc: FloatArray, stamp: float | None) -> JointOutput | None:
         assert self._parent is not None and self._child is not None
-        vis_p = ~np.isnan(yp[:, 0])
-        vis_c = ~np.isnan(yc[:, 0])
-        ps = self._pair(vis_p, vis_c)
+        Y = self._Y
+        Y[0, : yp.shape[0]] = yp
+        Y[1, : yc.shape[0]] = yc
+        missing = np.isnan(Y[:, :, 0])
+        ps = self._pair(missing)
         if ps.parent is None:
             self._drop("parent_not_posed")
         if ps.child is None:
             self._drop("child_not_posed")
         if ps.parent is None and ps.child is None:
             return None
-        Y = self._Y
-        Y[0, : yp.shape[0]] = np.where(vis_p[:, None], yp, 0.0)
-        Y[1, : yc.shape[0]] = np.where(vis_c[:, None], yc, 0.0)
+        Y[missing] = 0.0  # _poses needs zeros where a marker is missing
         R, d, ss = _poses(Y, ps)
         if ps.parent is not None and ps.child is not None and not self._frozen:
             Rp, dp, Rc, dc = R[0], d[0], R[1], d[1]
@@ -663,11 +669,12 @@ class OnlineJoint:
             c[10:13] = t
             c[13:16] = t @ Q
             c[16] = t @ t
-            c[17:98] = np.multiply.outer(qf, qf).ravel()
+            np.multiply.outer(qf, qf, out=self._outer_view)
             c[98:170] = ps.W_flat
-            c[170:174] = (ss[0], ps.dof[0], ss[1], ps.dof[1])
+            c[170:174:2] = ss
+            c[171:174:2] = ps.dof
             if self._sums is None:
-                self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, _identity)
+                self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
             self._sums.push(c, stamp)
             self._dirty = True
         if ps.parent is None or self._solution is None:

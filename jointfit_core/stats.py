@@ -145,10 +145,11 @@ class SlidingSums:
         Length R of the raw record kept per frame (e.g. ``3 P`` coordinates).
     n_sums : int
         Length L of a contribution vector.
-    contrib : callable
+    contrib : callable or None
         ``contrib(records (m, R), refs (m, 3)) -> (m, L)``: contributions of
         ``m`` records about their reference points. Must be exactly additive
-        over frames (sums of per-frame terms).
+        over frames (sums of per-frame terms). None: the records pushed are
+        the contributions themselves (``R == L``, no reference point).
     ref_of : callable, optional
         ``ref_of(sums (L,), ref (3,)) -> (3,) or None``: a reference point near
         the summed data (e.g. their mean). None: the reference stays at the
@@ -179,7 +180,7 @@ class SlidingSums:
         spec: WindowSpec,
         record_size: int,
         n_sums: int,
-        contrib: ContribFn,
+        contrib: ContribFn | None,
         *,
         ref_of: RefFn | None = None,
         first_ref: Callable[[FloatArray], FloatArray] | None = None,
@@ -190,6 +191,8 @@ class SlidingSums:
         self.spec = spec
         self.record_size = int(record_size)
         self.n_sums = int(n_sums)
+        if contrib is None and (ref_of is not None or record_size != n_sums):
+            raise InputError("contrib: None needs records of the contributions' length and no reference point")
         self._contrib = contrib
         self._ref_of = ref_of
         self._first_ref = first_ref
@@ -285,7 +288,7 @@ class SlidingSums:
             decay = float(np.exp(self._log_decay * steps))
             self.sums *= decay
             self._counts_sq *= decay * decay
-        c = self._contrib(record[None, :], self.ref[None, :])[0]
+        c = record if self._contrib is None else self._contrib(record[None, :], self.ref[None, :])[0]
         self.sums += c
         self._counts_sq += c[self._count_index] ** 2
         if self._ref_of is not None and self._shift is not None and self.n_pushed % _REREF_EVERY == _REREF_EVERY - 1:
@@ -317,7 +320,7 @@ class SlidingSums:
             cap = self._rec.shape[0]
         leaving = [i % cap for i in range(lo, new_lo)]
         if self._store_contrib:
-            c_new = self._contrib(record[None, :], self.ref[None, :])[0]
+            c_new = record if self._contrib is None else self._contrib(record[None, :], self.ref[None, :])[0]
             self._push_contrib(c_new, stamp, leaving, new_lo, cap)
             return
 
@@ -346,6 +349,7 @@ class SlidingSums:
             block[n_rows - len(chunk) :] = self._rec[chunk]
             refs[n_live:] = self._shadow_ref
             signs[n_live + 1 : n_live + 1 + len(inside)] = -1.0
+        assert self._contrib is not None  # records with a reference point always have a contribution function
         c = self._contrib(block, refs)
         self.sums += signs[:n_live] @ c[:n_live]
         if self._shadow_active:
