@@ -24,7 +24,7 @@ $(STAMP): requirements.txt setup.py setup.cfg pyproject.toml
 
 lint: venv
 	$(BIN)/ruff check jointfit_core jointfit_ros test bench
-	$(BIN)/mypy jointfit_core
+	$(BIN)/mypy jointfit_core jointfit_ros
 
 test: venv lint
 	$(ROS_ENV) $(BIN)/python -m pytest

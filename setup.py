@@ -18,7 +18,7 @@ setup(
     # ROS packages (rclpy, *_msgs) are not pip dependencies: colcon users get
     # them from their ROS install, pip users who want them install the
     # ros-jazzy-* wheels listed in requirements.txt.
-    install_requires=["numpy", "scipy"],
+    install_requires=["numpy", "scipy", "pyyaml"],
     extras_require={
         "c3d": ["ezc3d"],
         "bag": ["rosbags"],
@@ -31,6 +31,9 @@ setup(
     description="Joint centre and axis estimation from motion-capture markers, with a ROS 2 adapter.",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": [],
+        "console_scripts": [
+            "jointfit_node = jointfit_ros.node:main",
+            "jointfit_fake_mocap = jointfit_ros.fake_mocap:main",
+        ],
     },
 )

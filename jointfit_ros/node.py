@@ -1,0 +1,438 @@
+"""The jointfit ROS 2 node: marker (or pose) topics in, joint estimates with covariance out.
+
+Console script ``jointfit_node``::
+
+    jointfit_node --ros-args --params-file config/hip_knee.yaml
+
+The node stays thin: ``__init__`` declares the parameters
+(:mod:`jointfit_ros.params`), creates one :class:`~jointfit_ros.runner.JointRunner`
+per joint, the subscriptions (``raw=True``: messages are parsed from their
+bytes with numpy, :mod:`jointfit_ros.conversions`), publishers, timers and
+services; the callbacks convert and hand over to the runners. Topics,
+parameters and services are listed in the README.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import SetBool, Trigger
+from visualization_msgs.msg import MarkerArray
+
+from jointfit_core.errors import JointfitError
+from jointfit_core.estimator import JointOutput
+from jointfit_core.hinge_from_sums import PoseSumsAxis
+
+from .conversions import (
+    ConversionError,
+    axis_arrow_marker,
+    axis_pose,
+    covariance_ellipsoid_marker,
+    diagnostic_status,
+    frame_from_points,
+    label_points,
+    label_problems,
+    parse_pointcloud2,
+    parse_pose_array,
+    parse_pose_stamped,
+    pose_with_covariance,
+    rotation_matrix_from_quaternion,
+    stamp_from_ns,
+)
+from .params import (
+    JOINT_PARAMS,
+    NODE_PARAMS,
+    RUNTIME_PARAMS,
+    ConfigError,
+    NodeConfig,
+    ParamSpec,
+    check_value,
+    node_config,
+)
+from .runner import OK, WARN, JointRunner
+
+__all__ = ["JointfitNode", "main"]
+
+_ROS_TYPES = {
+    "string": ParameterType.PARAMETER_STRING,
+    "int": ParameterType.PARAMETER_INTEGER,
+    "double": ParameterType.PARAMETER_DOUBLE,
+    "bool": ParameterType.PARAMETER_BOOL,
+    "string_array": ParameterType.PARAMETER_STRING_ARRAY,
+}
+_PARAM_TYPES = {
+    "string": Parameter.Type.STRING,
+    "int": Parameter.Type.INTEGER,
+    "double": Parameter.Type.DOUBLE,
+    "bool": Parameter.Type.BOOL,
+    "string_array": Parameter.Type.STRING_ARRAY,
+}
+
+
+def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    text = spec.description
+    if spec.choices:
+        text += f" One of: {', '.join(spec.choices)}."
+    return ParameterDescriptor(
+        type=_ROS_TYPES[spec.kind], description=text, read_only=not spec.runtime, dynamic_typing=False
+    )
+
+
+class JointfitNode(Node):
+    """Online joint centres and axes from motion-capture markers (see the module docstring).
+
+    Raises
+    ------
+    ConfigError
+        When the parameters are invalid (the message names the parameter).
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("jointfit", **kwargs)
+        self.cfg: NodeConfig = node_config(self._declare_parameters())
+        reliability = (
+            ReliabilityPolicy.RELIABLE if self.cfg.qos_reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
+        )
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.cfg.qos_depth, reliability=reliability)
+
+        self.runners = {j.name: JointRunner(j, self.cfg) for j in self.cfg.joints}
+        for name, runner in self.runners.items():
+            if runner.loaded_from:
+                self.get_logger().info(f"{name}: calibration loaded from {runner.loaded_from}; starting frozen")
+            elif runner.last_error:
+                self.get_logger().warning(f"{name}: {runner.last_error}")
+
+        # Outputs.
+        self._world_pubs: dict[str, Any] = {}
+        self._local_pubs: dict[str, Any] = {}
+        for j in self.cfg.joints:
+            suffix = "centre" if j.type == "ball" else "axis"
+            self._world_pubs[j.name] = self.create_publisher(PoseWithCovarianceStamped, f"{j.name}/{suffix}", 10)
+            self._local_pubs[j.name] = self.create_publisher(
+                PoseWithCovarianceStamped, f"{j.name}/{suffix}_local", 10
+            )
+        self._rviz_pub = self.create_publisher(MarkerArray, "~/markers", 10)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+        # Inputs.
+        self.counters = {"messages": 0, "malformed": 0, "label_problems": 0, "unassigned": 0}
+        self._warned: set[str] = set()
+        self._last_frame: np.ndarray | None = None
+        self._frame_id = ""
+        self._last_outputs: dict[str, tuple[int, str, JointOutput]] = {}
+        marker_runners = [r for r in self.runners.values() if r.uses_marker_topic]
+        self._marker_runners = marker_runners
+        if marker_runners:
+            msg_type = PoseArray if self.cfg.marker_type == "pose_array" else PointCloud2
+            self.create_subscription(msg_type, self.cfg.marker_topic, self._on_markers, qos, raw=True)
+        for runner in self.runners.values():
+            for source, topic in ((0, runner.cfg.parent_pose_topic), (1, runner.cfg.child_pose_topic)):
+                if topic:
+                    self.create_subscription(PoseStamped, topic, self._pose_callback(runner, source), qos, raw=True)
+
+        # Timers and services.
+        self._jf_timers: dict[str, Any] = {}
+        self._make_timers()
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(SetBool, "~/freeze", self._on_freeze)
+        self.create_service(Trigger, "~/save", self._on_save)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.get_logger().info(
+            f"estimating {', '.join(f'{j.name} ({j.type})' for j in self.cfg.joints)} from "
+            f"{self.cfg.marker_topic if marker_runners else 'pose topics'}"
+        )
+
+    # ------------------------------------------------------------------ parameters
+
+    def _declare(self, name: str, spec: ParamSpec) -> Any:
+        if spec.kind == "string_array":
+            param = self.declare_parameter(name, _PARAM_TYPES["string_array"], _descriptor(spec))
+        else:
+            param = self.declare_parameter(name, spec.default, _descriptor(spec))
+        return param.value
+
+    def _declare_parameters(self) -> dict[str, Any]:
+        """Declare every parameter once (joint ones after reading ``joints``); return their values."""
+        values = {spec.name: self._declare(spec.name, spec) for spec in NODE_PARAMS}
+        joints = check_value(NODE_PARAMS[0], values["joints"], "joints")
+        for joint in joints:
+            for spec in JOINT_PARAMS:
+                full = f"{joint}.{spec.name}"
+                values[full] = self._declare(full, spec)
+        return values
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        """Validate run-time changes with the same checks as at start; apply them when all pass."""
+        specs = {s.name: s for s in NODE_PARAMS}
+        changes: dict[str, Any] = {}
+        for p in params:
+            if p.name not in RUNTIME_PARAMS:
+                continue  # read-only parameters are refused by rclpy itself
+            try:
+                changes[p.name] = check_value(specs[p.name], p.value, p.name)
+            except ConfigError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        if changes:
+            self.cfg = dataclasses.replace(self.cfg, **changes)
+            for runner in self.runners.values():
+                runner.node = self.cfg
+                if runner.matcher is not None:
+                    runner.matcher.tolerance_ns = round(self.cfg.sync_tolerance * 1e9)
+            self._make_timers()
+        return SetParametersResult(successful=True)
+
+    def _make_timers(self) -> None:
+        for timer in self._jf_timers.values():
+            self.destroy_timer(timer)
+        self._jf_timers = {
+            "estimate": self.create_timer(self.cfg.estimate_period, self._on_estimate_timer),
+            "diagnostics": self.create_timer(self.cfg.diagnostics_period, self._on_diagnostics_timer),
+        }
+        if self.cfg.local_rate > 0:
+            self._jf_timers["local"] = self.create_timer(1.0 / self.cfg.local_rate, self._on_local_timer)
+        if self.cfg.rviz_rate > 0:
+            self._jf_timers["rviz"] = self.create_timer(1.0 / self.cfg.rviz_rate, self._on_rviz_timer)
+
+    # ------------------------------------------------------------------ inputs
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text + " (reported once; counted in /diagnostics)")
+
+    def _frame_from_message(self, raw: bytes) -> tuple[int, str, np.ndarray] | None:
+        cfg = self.cfg
+        n = len(cfg.marker_names)
+        try:
+            if cfg.marker_type == "pose_array":
+                msg = parse_pose_array(raw)
+            else:
+                msg = parse_pointcloud2(raw, label_field=cfg.label_field or None)
+            if msg.labels is not None:
+                problems = label_problems(msg.labels, n)
+                if problems.out_of_range or problems.duplicated:
+                    self.counters["label_problems"] += 1
+                frame = frame_from_points(msg.points, n, labels=msg.labels, zero_is_missing=cfg.zero_is_missing)
+            elif cfg.unlabelled and self._last_frame is not None:
+                frame = label_points(msg.points, self._last_frame, cfg.assignment_gate, zero_is_missing=cfg.zero_is_missing)
+                missing = np.isnan(frame[:, 0])
+                if missing.any():
+                    self.counters["unassigned"] += int(missing.sum())
+            else:
+                frame = frame_from_points(msg.points, n, zero_is_missing=cfg.zero_is_missing)
+        except ConversionError as exc:
+            self.counters["malformed"] += 1
+            self._warn_once("malformed", f"dropped a malformed message on {cfg.marker_topic}: {exc}")
+            return None
+        if cfg.unlabelled:
+            # The prediction for the next cloud: the latest position of every marker seen.
+            if self._last_frame is None:
+                if not np.isnan(frame).any():
+                    self._last_frame = frame.copy()
+            else:
+                seen = ~np.isnan(frame[:, 0])
+                self._last_frame[seen] = frame[seen]
+        return msg.stamp_ns, msg.frame_id, frame
+
+    def _on_markers(self, raw: bytes) -> None:
+        self.counters["messages"] += 1
+        got = self._frame_from_message(raw)
+        if got is None:
+            return
+        stamp_ns, frame_id, frame = got
+        self._frame_id = frame_id
+        for runner in self._marker_runners:
+            self._publish_world(runner, stamp_ns, frame_id, runner.markers_frame(stamp_ns, frame))
+
+    def _pose_callback(self, runner: JointRunner, source: int) -> Callable[[bytes], None]:
+        topic = runner.cfg.parent_pose_topic if source == 0 else runner.cfg.child_pose_topic
+
+        def callback(raw: bytes) -> None:
+            self.counters["messages"] += 1
+            try:
+                msg = parse_pose_stamped(raw)
+                R = rotation_matrix_from_quaternion(msg.quaternion)
+            except ConversionError as exc:
+                self.counters["malformed"] += 1
+                self._warn_once(f"malformed:{topic}", f"dropped a malformed message on {topic}: {exc}")
+                return
+            if not np.isfinite(msg.position).all():
+                self.counters["malformed"] += 1
+                self._warn_once(f"nan:{topic}", f"dropped a pose with NaN position on {topic}")
+                return
+            self._frame_id = self._frame_id or msg.frame_id
+            self._publish_world(runner, msg.stamp_ns, msg.frame_id, runner.pose(source, msg.stamp_ns, R, msg.position))
+
+        return callback
+
+    # ------------------------------------------------------------------ outputs
+
+    def _publish_world(self, runner: JointRunner, stamp_ns: int, frame_id: str, out: JointOutput | None) -> None:
+        if out is None:
+            return
+        frame = self.cfg.world_frame or frame_id
+        if out.direction is None:
+            msg = pose_with_covariance(stamp_ns, frame, out.position, out.cov)
+        else:
+            assert out.cov_direction is not None
+            msg = axis_pose(stamp_ns, frame, out.position, out.direction, out.cov, out.cov_direction)
+        self._world_pubs[runner.cfg.name].publish(msg)
+        self._last_outputs[runner.cfg.name] = (stamp_ns, frame, out)
+
+    def _now_ns(self) -> int:
+        return int(self.get_clock().now().nanoseconds)
+
+    def _on_estimate_timer(self) -> None:
+        now = time.monotonic()
+        for runner in self.runners.values():
+            runner.estimate(now)
+
+    def _on_local_timer(self) -> None:
+        stamp = self._now_ns()
+        for name, runner in self.runners.items():
+            sol = runner.estimator.solution
+            if sol is None:
+                continue
+            frame = runner.cfg.local_frame_id
+            if isinstance(sol, PoseSumsAxis):
+                msg = axis_pose(
+                    stamp, frame, sol.point_parent, sol.direction_parent, sol.cov_point_parent, sol.cov_direction_parent
+                )
+            else:
+                msg = pose_with_covariance(stamp, frame, sol.centre_parent, sol.cov_parent)
+            self._local_pubs[name].publish(msg)
+
+    def _on_rviz_timer(self) -> None:
+        markers = MarkerArray()
+        for k, (name, (stamp, frame, out)) in enumerate(sorted(self._last_outputs.items())):
+            markers.markers.append(
+                covariance_ellipsoid_marker(
+                    stamp, frame, out.position, out.cov, k_sigma=self.cfg.ellipsoid_sigma, ns=f"{name}/covariance",
+                    marker_id=k, lifetime_ns=int(2e9 / max(self.cfg.rviz_rate, 1e-3)),
+                )
+            )
+            if out.direction is not None:
+                length = 2.0 * self.runners[name].estimator.length_scale  # the segments' size
+                markers.markers.append(
+                    axis_arrow_marker(
+                        stamp, frame, out.position, out.direction,
+                        length=length, shaft_diameter=max(length / 40.0, 1e-6), ns=f"{name}/axis", marker_id=k,
+                        lifetime_ns=int(2e9 / max(self.cfg.rviz_rate, 1e-3)),
+                    )
+                )
+        if markers.markers:
+            self._rviz_pub.publish(markers)
+
+    def _on_diagnostics_timer(self) -> None:
+        arr = DiagnosticArray()
+        arr.header.stamp = stamp_from_ns(self._now_ns())
+        node_values: dict[str, object] = {
+            "messages": self.counters["messages"],
+            "malformed messages": self.counters["malformed"],
+            "messages with label problems": self.counters["label_problems"],
+            "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
+            "input frame_id": self._frame_id,
+        }
+        level = WARN if self.counters["malformed"] or self.counters["label_problems"] else OK
+        message = "receiving" if self.counters["messages"] else f"waiting for {self.cfg.marker_topic}"
+        if self.counters["malformed"]:
+            message += f"; {self.counters['malformed']} malformed messages dropped"
+        arr.status.append(diagnostic_status("jointfit: input", level, message, node_values))
+        for name, runner in self.runners.items():
+            st = runner.status()
+            arr.status.append(diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values))
+        self._diag_pub.publish(arr)
+
+    # ------------------------------------------------------------------ services
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        for runner in self.runners.values():
+            runner.reset()
+        self._last_outputs.clear()
+        self._last_frame = None
+        response.success = True
+        response.message = f"reset {', '.join(self.runners)}"
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_freeze(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        results = []
+        ok = True
+        for runner in self.runners.values():
+            try:
+                results.append(runner.freeze(bool(request.data)))
+            except JointfitError as exc:
+                ok = False
+                results.append(f"{runner.cfg.name}: cannot freeze: {exc}")
+        response.success = ok
+        response.message = "; ".join(results)
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        results = []
+        ok = True
+        for runner in self.runners.values():
+            if not runner.cfg.calibration_file:
+                results.append(f"{runner.cfg.name}: no calibration_file configured")
+                continue
+            try:
+                results.append(f"{runner.cfg.name}: saved {runner.save()}")
+            except (JointfitError, OSError) as exc:
+                ok = False
+                results.append(f"{runner.cfg.name}: not saved: {exc}")
+        response.success = ok and any("saved" in r for r in results)
+        response.message = "; ".join(results)
+        self.get_logger().info(response.message)
+        return response
+
+
+def _executor() -> Any:
+    """The events executor (handles 1 kHz inputs here without drops), else the single-threaded one."""
+    try:
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    except (ImportError, AttributeError, RuntimeError):  # pragma: no cover - other rclpy versions
+        return rclpy.executors.SingleThreadedExecutor()
+
+
+def main(args: list[str] | None = None) -> None:
+    """Console script ``jointfit_node``."""
+    rclpy.init(args=args)
+    node: JointfitNode | None = None
+    try:
+        try:
+            node = JointfitNode()
+        except ConfigError as exc:
+            print(f"jointfit_node: invalid parameters: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+        executor = _executor()
+        executor.add_node(node)
+        # spin_once in a loop: with this rclpy, EventsExecutor.spin() stops firing timers.
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,460 @@
+"""The node's parameters: declarations, defaults, descriptions and validation.
+
+Pure Python (no rclpy): :data:`NODE_PARAMS` and :data:`JOINT_PARAMS` list every
+parameter once with its type, default, unit and meaning; :func:`node_config`
+turns a flat ``{name: value}`` mapping (as read from the ROS parameter server
+or a YAML file) into a checked :class:`NodeConfig`, raising
+:class:`ConfigError` with a message that names the parameter, what was
+expected and what came. The node declares exactly these parameters and runs
+the same checks on run-time changes.
+
+Joint parameters live under the joint's name: ``hip.type``, ``hip.parent_markers``, ...
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from jointfit_core.errors import JointfitError
+
+__all__ = [
+    "ConfigError",
+    "ParamSpec",
+    "NODE_PARAMS",
+    "JOINT_PARAMS",
+    "JointConfig",
+    "NodeConfig",
+    "node_config",
+    "check_value",
+    "joint_param_names",
+    "RUNTIME_PARAMS",
+]
+
+
+class ConfigError(JointfitError, ValueError):
+    """A parameter is missing, of the wrong type or out of range."""
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: name, type, default, description and limits.
+
+    Attributes
+    ----------
+    name : str
+        Parameter name (joint parameters: the part after ``<joint>.``).
+    kind : str
+        ``"string"``, ``"int"``, ``"double"``, ``"bool"`` or ``"string_array"``.
+    default : object
+        Default value (``[]`` for string arrays).
+    description : str
+        Meaning and unit, shown by ``ros2 param describe`` and in the README.
+    choices : tuple of str, optional
+        Allowed values of a string parameter.
+    minimum : float, optional
+        Smallest allowed number.
+    runtime : bool
+        Whether it may be changed while the node runs (the others are read-only).
+    """
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+    choices: tuple[str, ...] | None = None
+    minimum: float | None = None
+    runtime: bool = False
+
+
+NODE_PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("joints", "string_array", [], "Names of the joints to estimate; each has <name>.* parameters."),
+    ParamSpec("marker_topic", "string", "markers", "Topic with the labelled (or unlabelled) markers of all segments."),
+    ParamSpec(
+        "marker_type",
+        "string",
+        "pose_array",
+        "Message type of marker_topic: pose_array (geometry_msgs/PoseArray, positions used) or pointcloud2 "
+        "(sensor_msgs/PointCloud2 with x, y, z float32 or float64).",
+        choices=("pose_array", "pointcloud2"),
+    ),
+    ParamSpec(
+        "marker_names",
+        "string_array",
+        [],
+        "Names of the markers in the order of the points in marker_topic (or of the label values).",
+    ),
+    ParamSpec(
+        "label_field",
+        "string",
+        "",
+        "PointCloud2 integer field holding each point's index into marker_names; empty: points are in "
+        "marker_names order (or unlabelled).",
+    ),
+    ParamSpec(
+        "unlabelled",
+        "bool",
+        False,
+        "PointCloud2 without labels in a varying order: label each cloud by optimal assignment to the markers' "
+        "last positions (needs a first cloud in marker_names order with every marker visible).",
+    ),
+    ParamSpec(
+        "assignment_gate",
+        "double",
+        0.03,
+        "Unlabelled clouds: largest distance between a point and a marker's last position to accept the "
+        "assignment (input units, m for ROS).",
+        minimum=0.0,
+        runtime=True,
+    ),
+    ParamSpec(
+        "zero_is_missing",
+        "bool",
+        True,
+        "Treat a point at exactly (0, 0, 0) as an occluded marker (mocap4ros2 Vicon convention).",
+        runtime=True,
+    ),
+    ParamSpec(
+        "qos_reliability",
+        "string",
+        "best_effort",
+        "Reliability of the input subscriptions: best_effort (sensor data) or reliable.",
+        choices=("best_effort", "reliable"),
+    ),
+    ParamSpec("qos_depth", "int", 10, "Queue depth of the input subscriptions (messages).", minimum=1),
+    ParamSpec(
+        "world_frame",
+        "string",
+        "",
+        "frame_id of the world outputs; empty: the frame_id of the input messages.",
+    ),
+    ParamSpec(
+        "estimate_period",
+        "double",
+        0.1,
+        "Seconds between re-solving each joint's estimate from its window (the per-frame outputs use the latest).",
+        minimum=0.001,
+        runtime=True,
+    ),
+    ParamSpec(
+        "local_rate",
+        "double",
+        10.0,
+        "Rate (Hz) of <joint>/centre_local and <joint>/axis_local; 0 disables them.",
+        minimum=0.0,
+        runtime=True,
+    ),
+    ParamSpec(
+        "rviz_rate",
+        "double",
+        5.0,
+        "Rate (Hz) of ~/markers (RViz MarkerArray); 0 disables it.",
+        minimum=0.0,
+        runtime=True,
+    ),
+    ParamSpec(
+        "diagnostics_period",
+        "double",
+        1.0,
+        "Seconds between /diagnostics messages.",
+        minimum=0.01,
+        runtime=True,
+    ),
+    ParamSpec(
+        "sync_tolerance",
+        "double",
+        0.002,
+        "Largest stamp difference (s) to pair parent and child data from different topics.",
+        minimum=0.0,
+        runtime=True,
+    ),
+    ParamSpec(
+        "ellipsoid_sigma",
+        "double",
+        2.0,
+        "Size of the RViz covariance ellipsoids in standard deviations.",
+        minimum=0.0,
+        runtime=True,
+    ),
+)
+
+JOINT_PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("type", "string", "ball", "ball (centre of rotation) or hinge (axis).", choices=("ball", "hinge")),
+    ParamSpec("parent_markers", "string_array", [], "Names (from marker_names) of the parent segment's markers, >= 3."),
+    ParamSpec("child_markers", "string_array", [], "Names (from marker_names) of the child segment's markers, >= 3."),
+    ParamSpec(
+        "parent_pose_topic",
+        "string",
+        "",
+        "Instead of markers: a geometry_msgs/PoseStamped topic with the parent segment's rigid-body pose.",
+    ),
+    ParamSpec(
+        "child_pose_topic",
+        "string",
+        "",
+        "Instead of markers: a geometry_msgs/PoseStamped topic with the child segment's rigid-body pose.",
+    ),
+    ParamSpec(
+        "pose_translation_sd",
+        "double",
+        0.0005,
+        "Pose inputs: standard deviation of the pose position per axis (input units, m for ROS).",
+        minimum=0.0,
+    ),
+    ParamSpec(
+        "pose_rotation_sd_deg",
+        "double",
+        0.2,
+        "Pose inputs: standard deviation of the pose orientation per axis (degrees).",
+        minimum=0.0,
+    ),
+    ParamSpec("window", "int", 3000, "Sliding window length in frames (used when window_s and half_life_s are 0).", minimum=3),
+    ParamSpec("window_s", "double", 0.0, "Sliding window length in seconds of stamp time; 0: use window.", minimum=0.0),
+    ParamSpec(
+        "half_life_s",
+        "double",
+        0.0,
+        "Exponential forgetting instead of a window: a frame's weight halves every half_life_s seconds; 0: off.",
+        minimum=0.0,
+    ),
+    ParamSpec(
+        "template_frames", "int", 50, "Fully visible frames averaged into each segment's template.", minimum=1
+    ),
+    ParamSpec(
+        "calibration_file",
+        "string",
+        "",
+        "YAML file for ~/save; loaded at start when it exists (the joint then starts frozen). Empty: none.",
+    ),
+    ParamSpec(
+        "axis_toward_marker",
+        "string",
+        "",
+        "Hinge sign: the axis direction points toward the side of this marker (parent or child); empty: the "
+        "parent-frame axis with the largest component is positive.",
+    ),
+    ParamSpec(
+        "local_frame_id",
+        "string",
+        "",
+        "frame_id of <joint>/centre_local (the parent template frame); empty: '<joint>_parent'.",
+    ),
+)
+
+#: Parameters that may change while the node runs.
+RUNTIME_PARAMS = frozenset(p.name for p in NODE_PARAMS if p.runtime)
+
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+@dataclass(frozen=True)
+class JointConfig:
+    """Checked parameters of one joint (see :data:`JOINT_PARAMS`)."""
+
+    name: str
+    type: str
+    parent_markers: tuple[str, ...]
+    child_markers: tuple[str, ...]
+    parent_pose_topic: str
+    child_pose_topic: str
+    pose_translation_sd: float
+    pose_rotation_sd_deg: float
+    window: int
+    window_s: float
+    half_life_s: float
+    template_frames: int
+    calibration_file: str
+    axis_toward_marker: str
+    local_frame_id: str
+
+    def window_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of :class:`jointfit_core.estimator.OnlineJoint` for the window."""
+        if self.window_s > 0.0:
+            return {"window_s": self.window_s}
+        if self.half_life_s > 0.0:
+            return {"half_life_s": self.half_life_s}
+        return {"window": self.window}
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """Checked node parameters (see :data:`NODE_PARAMS`)."""
+
+    marker_topic: str
+    marker_type: str
+    marker_names: tuple[str, ...]
+    label_field: str
+    unlabelled: bool
+    assignment_gate: float
+    zero_is_missing: bool
+    qos_reliability: str
+    qos_depth: int
+    world_frame: str
+    estimate_period: float
+    local_rate: float
+    rviz_rate: float
+    diagnostics_period: float
+    sync_tolerance: float
+    ellipsoid_sigma: float
+    joints: tuple[JointConfig, ...]
+
+    def marker_index(self, name: str) -> int:
+        """Row of a marker in the marker frame."""
+        return self.marker_names.index(name)
+
+
+def joint_param_names(joint: str) -> list[str]:
+    """Full names of a joint's parameters (``<joint>.<name>``)."""
+    return [f"{joint}.{p.name}" for p in JOINT_PARAMS]
+
+
+def check_value(spec: ParamSpec, value: Any, full_name: str | None = None) -> Any:
+    """Check one value against its spec and return it in its Python type.
+
+    ``None`` (a parameter declared by type but never set) gives the default.
+
+    Raises
+    ------
+    ConfigError
+    """
+    name = full_name or spec.name
+    if value is None:
+        return list(spec.default) if spec.kind == "string_array" else spec.default
+    if spec.kind == "string":
+        if not isinstance(value, str):
+            raise ConfigError(f"{name}: expected a string, got {value!r}")
+        if spec.choices is not None and value not in spec.choices:
+            raise ConfigError(f"{name}: expected one of {list(spec.choices)}, got {value!r}")
+        return value
+    if spec.kind == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{name}: expected true or false, got {value!r}")
+        return value
+    if spec.kind == "string_array":
+        if isinstance(value, str) or not isinstance(value, Sequence) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{name}: expected a list of strings, got {value!r}")
+        return list(value)
+    if spec.kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{name}: expected an integer, got {value!r}")
+    elif spec.kind == "double":
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+            raise ConfigError(f"{name}: expected a finite number, got {value!r}")
+        value = float(value)
+    if spec.minimum is not None and value < spec.minimum:
+        raise ConfigError(f"{name}: expected a value >= {spec.minimum:g}, got {value!r}")
+    return value
+
+
+def _values(specs: Sequence[ParamSpec], values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    return {s.name: check_value(s, values.get(prefix + s.name), prefix + s.name) for s in specs}
+
+
+def _joint_config(name: str, values: Mapping[str, Any], marker_names: Sequence[str]) -> JointConfig:
+    v = _values(JOINT_PARAMS, values, name + ".")
+    known = set(marker_names)
+    for side in ("parent", "child"):
+        markers = v[f"{side}_markers"]
+        topic = v[f"{side}_pose_topic"]
+        if topic:
+            if markers:
+                raise ConfigError(f"{name}.{side}_markers: give markers or {name}.{side}_pose_topic, not both")
+            continue
+        if len(markers) < 3:
+            raise ConfigError(
+                f"{name}.{side}_markers: expected at least 3 marker names (or {name}.{side}_pose_topic), "
+                f"got {markers!r}"
+            )
+        unknown = [m for m in markers if m not in known]
+        if unknown:
+            raise ConfigError(f"{name}.{side}_markers: {unknown} are not in marker_names {list(marker_names)}")
+        if len(set(markers)) != len(markers):
+            raise ConfigError(f"{name}.{side}_markers: a marker is listed twice: {markers!r}")
+    shared = set(v["parent_markers"]) & set(v["child_markers"])
+    if shared:
+        raise ConfigError(f"{name}: markers {sorted(shared)} are on both the parent and the child")
+    if v["window_s"] > 0.0 and v["half_life_s"] > 0.0:
+        raise ConfigError(f"{name}: give window_s or half_life_s (or neither, for window), not both")
+    for side in ("parent", "child"):
+        if v[f"{side}_pose_topic"] and (v["pose_translation_sd"] <= 0.0 or v["pose_rotation_sd_deg"] <= 0.0):
+            raise ConfigError(f"{name}: pose inputs need pose_translation_sd > 0 and pose_rotation_sd_deg > 0")
+    marker = v["axis_toward_marker"]
+    if marker:
+        if v["type"] != "hinge":
+            raise ConfigError(f"{name}.axis_toward_marker: only for hinges (type is {v['type']!r})")
+        if marker not in set(v["parent_markers"]) | set(v["child_markers"]):
+            raise ConfigError(
+                f"{name}.axis_toward_marker: expected one of the joint's markers, got {marker!r}"
+            )
+    return JointConfig(
+        name=name,
+        type=v["type"],
+        parent_markers=tuple(v["parent_markers"]),
+        child_markers=tuple(v["child_markers"]),
+        parent_pose_topic=v["parent_pose_topic"],
+        child_pose_topic=v["child_pose_topic"],
+        pose_translation_sd=v["pose_translation_sd"],
+        pose_rotation_sd_deg=v["pose_rotation_sd_deg"],
+        window=v["window"],
+        window_s=v["window_s"],
+        half_life_s=v["half_life_s"],
+        template_frames=v["template_frames"],
+        calibration_file=v["calibration_file"],
+        axis_toward_marker=marker,
+        local_frame_id=v["local_frame_id"] or f"{name}_parent",
+    )
+
+
+def node_config(values: Mapping[str, Any]) -> NodeConfig:
+    """Check every parameter and build the node's configuration.
+
+    Parameters
+    ----------
+    values : mapping
+        Full parameter names (``marker_topic``, ``hip.type``, ...) to values;
+        missing names take their defaults.
+
+    Raises
+    ------
+    ConfigError
+        The first problem found, naming the parameter.
+    """
+    v = _values(NODE_PARAMS, values)
+    joints = v["joints"]
+    if not joints:
+        raise ConfigError("joints: expected at least one joint name, got none")
+    for j in joints:
+        if not _NAME.match(j):
+            raise ConfigError(f"joints: {j!r} is not a valid name (letters, digits and _; starting with a letter)")
+    if len(set(joints)) != len(joints):
+        raise ConfigError(f"joints: a name is listed twice: {joints!r}")
+    names = v["marker_names"]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"marker_names: a name is listed twice: {names!r}")
+    if v["unlabelled"] and (v["marker_type"] != "pointcloud2" or v["label_field"]):
+        raise ConfigError("unlabelled: only for marker_type pointcloud2 without a label_field")
+    configs = tuple(_joint_config(j, values, names) for j in joints)
+    if not names and any(c.parent_markers or c.child_markers for c in configs):
+        raise ConfigError("marker_names: expected the names of the points of marker_topic, got none")
+    return NodeConfig(
+        marker_topic=v["marker_topic"],
+        marker_type=v["marker_type"],
+        marker_names=tuple(names),
+        label_field=v["label_field"],
+        unlabelled=v["unlabelled"],
+        assignment_gate=v["assignment_gate"],
+        zero_is_missing=v["zero_is_missing"],
+        qos_reliability=v["qos_reliability"],
+        qos_depth=v["qos_depth"],
+        world_frame=v["world_frame"],
+        estimate_period=v["estimate_period"],
+        local_rate=v["local_rate"],
+        rviz_rate=v["rviz_rate"],
+        diagnostics_period=v["diagnostics_period"],
+        sync_tolerance=v["sync_tolerance"],
+        ellipsoid_sigma=v["ellipsoid_sigma"],
+        joints=configs,
+    )

@@ -1,0 +1,309 @@
+"""One joint of the node: routing frames to its estimator, timing, diagnostics, calibration file.
+
+Pure Python and numpy (no rclpy), so that the node's behaviour per joint is
+tested without ROS: :class:`JointRunner` takes marker frames (or segment
+poses, as virtual markers), keeps its :class:`~jointfit_core.estimator.OnlineJoint`
+solved every ``estimate_period``, fixes the hinge sign, counts what it
+drops, summarises its state for ``/diagnostics`` and saves and loads its
+calibration.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jointfit_core.calibration import load_calibration, save_calibration
+from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
+from jointfit_core.estimator import JointOutput, OnlineJoint, virtual_markers_template
+from jointfit_core.hinge_from_sums import PoseSumsAxis
+from jointfit_core.segments import PoseSumsCentre
+
+from .params import JointConfig, NodeConfig
+from .sync import StampMatcher
+
+__all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE"]
+
+FloatArray = NDArray[np.float64]
+
+#: diagnostic_msgs/DiagnosticStatus levels.
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+#: Input stamps kept to measure the input rate.
+_RATE_SAMPLES = 200
+
+
+@dataclass(frozen=True)
+class Status:
+    """A joint's state for ``/diagnostics``: level, one-line message and key/values."""
+
+    level: int
+    message: str
+    values: dict[str, Any]
+
+
+def _spread_deg(deficit: float) -> float:
+    return float(np.rad2deg(np.sqrt(2.0 * max(deficit, 0.0))))
+
+
+class JointRunner:
+    """Feed one joint's estimator from the node's inputs and report on it.
+
+    Parameters
+    ----------
+    cfg : JointConfig
+        This joint's parameters.
+    node : NodeConfig
+        The node's parameters (marker names, estimate period, sync tolerance).
+
+    Attributes
+    ----------
+    estimator : OnlineJoint
+    counters : dict of str to int
+        ``frames`` (inputs given to the estimator), ``outputs``,
+        ``malformed`` (inputs rejected with an error), ``unmatched`` (pose
+        inputs without a partner), ``estimate_failures``.
+    last_error : str
+        The latest problem in words (empty when none).
+    """
+
+    def __init__(self, cfg: JointConfig, node: NodeConfig) -> None:
+        self.cfg = cfg
+        self.node = node
+        self.parent_rows = np.array([node.marker_index(m) for m in cfg.parent_markers], dtype=np.intp)
+        self.child_rows = np.array([node.marker_index(m) for m in cfg.child_markers], dtype=np.intp)
+        self.uses_marker_topic = bool(cfg.parent_markers or cfg.child_markers)
+        self.matcher: StampMatcher | None = None
+        self._virtual: FloatArray | None = None
+        templates: tuple[FloatArray, FloatArray] | None = None
+        noise: tuple[float, float] | None = None
+        if cfg.parent_pose_topic or cfg.child_pose_topic:
+            self.matcher = StampMatcher(tolerance_ns=round(node.sync_tolerance * 1e9))
+            virtual, sigma = virtual_markers_template(cfg.pose_translation_sd, math.radians(cfg.pose_rotation_sd_deg))
+            self._virtual = virtual
+            if cfg.parent_pose_topic and cfg.child_pose_topic:
+                templates, noise = (virtual, virtual), (sigma, sigma)
+        self._template_args = templates
+        self._noise_args = noise
+        self.counters = {"frames": 0, "outputs": 0, "malformed": 0, "unmatched": 0, "estimate_failures": 0}
+        self.last_error = ""
+        self.loaded_from: str = ""
+        self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
+        self._last_solve = -math.inf
+        self._sign_fixed = not cfg.axis_toward_marker
+        self._toward_row = node.marker_index(cfg.axis_toward_marker) if cfg.axis_toward_marker else -1
+        self.estimator = self._new_estimator()
+        self._load()
+
+    # ------------------------------------------------------------------ set-up
+
+    def _new_estimator(self) -> OnlineJoint:
+        return OnlineJoint(
+            self.cfg.type,
+            template_frames=self.cfg.template_frames,
+            templates=self._template_args,
+            noise_std=self._noise_args,
+            **self.cfg.window_kwargs(),
+        )
+
+    def _load(self) -> None:
+        path = self.cfg.calibration_file
+        if not path or not Path(path).exists():
+            return
+        try:
+            est = OnlineJoint.from_dict(load_calibration(path))
+        except (InputError, OSError) as exc:
+            self.last_error = f"calibration file {path} not loaded: {exc}"
+            return
+        if est.kind != self.cfg.type:
+            self.last_error = f"calibration file {path} holds a {est.kind} joint, this joint is a {self.cfg.type}"
+            return
+        self.estimator = est
+        self._sign_fixed = True  # the saved estimate carries its sign
+        self.loaded_from = path
+
+    # ------------------------------------------------------------------ inputs
+
+    def markers_frame(self, stamp_ns: int, frame: FloatArray) -> JointOutput | None:
+        """A frame of all configured markers (P, 3) from the marker topic."""
+        if self.matcher is None:
+            return self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
+        if self.cfg.parent_markers:
+            return self._paired(0, stamp_ns, frame[self.parent_rows], frame)
+        return self._paired(1, stamp_ns, frame[self.child_rows], frame)
+
+    def pose(self, source: int, stamp_ns: int, R: FloatArray, d: FloatArray) -> JointOutput | None:
+        """A rigid-body pose of the parent (``source`` 0) or the child (1), as virtual markers."""
+        assert self._virtual is not None
+        return self._paired(source, stamp_ns, self._virtual @ R.T + d, None)
+
+    def _paired(self, source: int, stamp_ns: int, points: FloatArray, frame: FloatArray | None) -> JointOutput | None:
+        assert self.matcher is not None
+        before = self.matcher.unmatched
+        pair = self.matcher.add(source, stamp_ns, (points, frame))
+        self.counters["unmatched"] += self.matcher.unmatched - before
+        if pair is None:
+            return None
+        stamp, (parent, frame_p), (child, frame_c) = pair
+        return self.process(stamp, parent, child, frame_p if frame_p is not None else frame_c)
+
+    def process(
+        self, stamp_ns: int, parent: FloatArray, child: FloatArray, frame: FloatArray | None = None
+    ) -> JointOutput | None:
+        """Give one frame to the estimator; return its world output (None when there is none).
+
+        Never raises on bad data: malformed frames are counted and described in
+        :attr:`last_error`.
+        """
+        stamp = stamp_ns * 1e-9
+        try:
+            out = self.estimator.update(parent, child, stamp)
+        except InputError as exc:
+            self.counters["malformed"] += 1
+            self.last_error = f"frame dropped: {exc}"
+            return None
+        self.counters["frames"] += 1
+        self._stamps.append(stamp)
+        if out is not None and not self._sign_fixed and frame is not None:
+            out = self._fix_sign(out, frame)
+        if out is not None:
+            self.counters["outputs"] += 1
+        return out
+
+    def _fix_sign(self, out: JointOutput, frame: FloatArray) -> JointOutput:
+        """Point the hinge axis toward ``axis_toward_marker`` once, then keep that sign."""
+        sol = self.estimator.solution
+        marker = frame[self._toward_row]
+        if not isinstance(sol, PoseSumsAxis) or out.direction is None or np.isnan(marker).any():
+            return out
+        side = float(out.direction @ (marker - out.position))
+        sign = -1.0 if side < 0.0 else 1.0
+        self.estimator.set_reference_direction(sign * sol.direction_parent)
+        self._sign_fixed = True
+        self.estimate(force=True)
+        if sign < 0.0 and out.cov_direction is not None:
+            out = JointOutput(out.kind, out.position, out.cov, -out.direction, out.cov_direction, out.residual)
+        return out
+
+    # ------------------------------------------------------------------ estimates
+
+    def estimate(self, now: float | None = None, *, force: bool = False) -> bool:
+        """Re-solve the window when ``estimate_period`` has passed (``now`` in seconds, monotonic).
+
+        Returns True when a new estimate was made. Failures are counted and described.
+        """
+        if not force and now is not None and now - self._last_solve < self.node.estimate_period:
+            return False
+        if now is not None:
+            self._last_solve = now
+        if self.estimator.frozen or not self.estimator.templates_ready or self.estimator.n_window < 3:
+            return False
+        try:
+            self.estimator.estimate()
+        except (NotIdentifiableError, InputError) as exc:
+            self.counters["estimate_failures"] += 1
+            self.last_error = f"no estimate: {exc}"
+            return False
+        return True
+
+    # ------------------------------------------------------------------ services
+
+    def reset(self) -> None:
+        """Forget the window, templates and estimate (the calibration file is untouched)."""
+        self.estimator = self._new_estimator()
+        self._sign_fixed = not self.cfg.axis_toward_marker
+        if self.matcher is not None:
+            self.matcher.clear()
+        for key in self.counters:
+            self.counters[key] = 0
+        self.last_error = ""
+        self.loaded_from = ""
+
+    def freeze(self, on: bool) -> str:
+        """Freeze (True) or thaw (False) the estimate; returns what happened in words.
+
+        Raises
+        ------
+        JointfitError
+            Freezing without an estimate.
+        """
+        if not on:
+            self.estimator.thaw()
+            return f"{self.cfg.name}: estimating"
+        self.estimator.freeze()
+        return f"{self.cfg.name}: frozen"
+
+    def save(self) -> str:
+        """Write the calibration file atomically; returns its path.
+
+        Raises
+        ------
+        JointfitError
+            No calibration_file configured, or no estimate yet.
+        OSError
+            The file cannot be written (the previous one is kept).
+        """
+        if not self.cfg.calibration_file:
+            raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
+        return str(save_calibration(self.cfg.calibration_file, self.estimator.to_dict()))
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def input_rate(self) -> float:
+        """Frames per second over the last frames given to the estimator (0 when fewer than 2)."""
+        if len(self._stamps) < 2 or self._stamps[-1] <= self._stamps[0]:
+            return 0.0
+        return (len(self._stamps) - 1) / (self._stamps[-1] - self._stamps[0])
+
+    def status(self) -> Status:
+        """Level, message and values for ``/diagnostics``."""
+        est = self.estimator
+        values: dict[str, Any] = {
+            "type": self.cfg.type,
+            "frozen": est.frozen,
+            "frames in window": est.n_window,
+            "frames received": self.counters["frames"],
+            "input rate (Hz)": round(self.input_rate(), 1),
+            "outputs": self.counters["outputs"],
+            "malformed frames": self.counters["malformed"],
+            "unmatched inputs": self.counters["unmatched"],
+            "estimate failures": self.counters["estimate_failures"],
+        }
+        for reason, count in sorted(est.dropped.items()):
+            values[f"dropped: {reason}"] = count
+        if self.loaded_from:
+            values["calibration loaded from"] = self.loaded_from
+        sol = est.solution
+        waiting = est.status()
+        if sol is None:
+            msg = waiting or self.last_error or "collecting frames"
+            return Status(WARN if est.n_frames_seen else STALE, msg, values)
+        sigma_p, sigma_c = est.noise_std
+        values["noise sd parent"] = sigma_p
+        values["noise sd child"] = sigma_c
+        values["rms residual"] = sol.rms
+        values["identifiable"] = sol.identifiable
+        if not est.frozen and est.n_window >= 3:
+            try:
+                sums = est.pose_sums()[0]
+                s = np.linalg.svd(np.asarray(sums.S) / sums.n, compute_uv=False)
+                values["relative rotation spread (deg)"] = [round(_spread_deg(1.0 - v), 1) for v in s]
+            except InputError:
+                pass
+        if isinstance(sol, PoseSumsCentre):
+            values["centre_parent"] = np.round(sol.centre_parent, 6).tolist()
+            values["sd (max)"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_parent)[-1], 0.0)))
+        else:
+            values["direction_parent"] = np.round(sol.direction_parent, 6).tolist()
+            values["point_parent"] = np.round(sol.point_parent, 6).tolist()
+        if not sol.identifiable:
+            return Status(WARN, f"not identifiable: {sol.reason}", values)
+        if self.last_error and (self.counters["malformed"] or self.counters["estimate_failures"]):
+            return Status(OK, f"{'frozen' if est.frozen else 'estimating'}; last problem: {self.last_error}", values)
+        return Status(OK, "frozen" if est.frozen else "estimating", values)
