@@ -369,15 +369,15 @@ class OnlineJoint:
     n_markers : (int, int), optional
         Expected marker counts of the parent and the child (default: from
         the first frame). At least 3 each.
-    templates : (array_like, array_like), optional
+    templates : (array_like or None, array_like or None), optional
         Fixed templates ``(Pa, 3)`` and ``(Pc, 3)`` (local frames, input
-        units) instead of building them from the first frames; e.g. the
-        virtual markers of a rigid-body pose stream
-        (:func:`virtual_markers_template`).
-    noise_std : (float, float), optional
+        units) instead of building them from the first frames (None: build
+        that one); e.g. the virtual markers of a rigid-body pose stream
+        (:func:`virtual_markers_template`). With one fixed, give ``n_markers``.
+    noise_std : (float or None, float or None), optional
         Fixed marker noise of the parent and the child (input units)
-        instead of the residual estimate; needed with virtual markers, whose
-        pose fits have no residual.
+        instead of the residual estimate (None: estimate); needed with
+        virtual markers, whose pose fits have no residual.
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -426,8 +426,8 @@ class OnlineJoint:
         template_frames: int = 50,
         reference_direction: ArrayLike | None = None,
         n_markers: tuple[int, int] | None = None,
-        templates: tuple[ArrayLike, ArrayLike] | None = None,
-        noise_std: tuple[float, float] | None = None,
+        templates: tuple[ArrayLike | None, ArrayLike | None] | None = None,
+        noise_std: tuple[float | None, float | None] | None = None,
     ) -> None:
         if kind not in _KINDS:
             raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
@@ -445,27 +445,37 @@ class OnlineJoint:
             if len(n_markers) != 2 or min(int(n_markers[0]), int(n_markers[1])) < MIN_POSE_MARKERS:
                 raise InputError(f"n_markers: expected two counts >= {MIN_POSE_MARKERS}, got {n_markers!r}")
             n_markers = (int(n_markers[0]), int(n_markers[1]))
-        self._templates_arg: tuple[FloatArray, FloatArray] | None = None
+        fixed: list[FloatArray | None] = [None, None]
         if templates is not None:
-            tpl = tuple(np.array(x, dtype=np.float64) for x in templates)
-            if len(tpl) != 2 or any(x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < MIN_POSE_MARKERS for x in tpl):
-                raise InputError(f"templates: expected two arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
-            if not all(np.isfinite(x).all() and _shape_ok(x) for x in tpl):
-                raise InputError("templates: expected finite, non-collinear template points")
-            shapes = (tpl[0].shape[0], tpl[1].shape[0])
-            if n_markers is not None and n_markers != shapes:
-                raise InputError(f"templates: marker counts {shapes} differ from n_markers {n_markers}")
-            n_markers = shapes
-            self._templates_arg = (tpl[0], tpl[1])
-        self._noise_arg: tuple[float, float] | None = None
+            if len(templates) != 2:
+                raise InputError("templates: expected a pair (parent, child); None for a template to build")
+            for k, x in enumerate(templates):
+                if x is None:
+                    continue
+                arr = np.array(x, dtype=np.float64)
+                if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < MIN_POSE_MARKERS:
+                    raise InputError(f"templates: expected arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
+                if not (np.isfinite(arr).all() and _shape_ok(arr)):
+                    raise InputError("templates: expected finite, non-collinear template points")
+                if n_markers is not None and n_markers[k] != arr.shape[0]:
+                    raise InputError(f"templates: {arr.shape[0]} points differ from n_markers {n_markers}")
+                fixed[k] = arr
+            if any(x is not None for x in fixed) and n_markers is None:
+                if fixed[0] is None or fixed[1] is None:
+                    raise InputError("templates: with one template fixed, give n_markers for both segments")
+                n_markers = (fixed[0].shape[0], fixed[1].shape[0])
+        self._templates_arg: tuple[FloatArray | None, FloatArray | None] = (fixed[0], fixed[1])
+        noise: list[float | None] = [None, None]
         if noise_std is not None:
             try:
-                sp, sc = float(noise_std[0]), float(noise_std[1])
+                for k in range(2):
+                    if noise_std[k] is not None:
+                        noise[k] = float(noise_std[k])  # type: ignore[arg-type]
             except (TypeError, ValueError, IndexError):
-                raise InputError(f"noise_std: expected two numbers > 0, got {noise_std!r}") from None
-            if not (np.isfinite(sp) and np.isfinite(sc) and sp > 0 and sc > 0):
-                raise InputError(f"noise_std: expected two finite numbers > 0, got {noise_std!r}")
-            self._noise_arg = (sp, sc)
+                raise InputError(f"noise_std: expected two numbers > 0 (or None), got {noise_std!r}") from None
+            if any(v is not None and not (np.isfinite(v) and v > 0) for v in noise):
+                raise InputError(f"noise_std: expected finite numbers > 0 (or None), got {noise_std!r}")
+        self._noise_arg: tuple[float | None, float | None] = (noise[0], noise[1])
         self._n_markers_arg = n_markers
         self.reset()
 
@@ -491,12 +501,15 @@ class OnlineJoint:
         self._pairs: dict[bytes, _PairSet] = {}
         self._Y = np.zeros((0, 0, 3))
         self._world_cache: dict[bytes, tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]] = {}
-        if self._templates_arg is not None:
+        tp, tc = self._templates_arg
+        if tp is not None or tc is not None:
             assert self.n_markers is not None
             self._make_segments(*self.n_markers)
             assert self._parent is not None and self._child is not None
-            self._parent.set_template(self._templates_arg[0])
-            self._child.set_template(self._templates_arg[1])
+            if tp is not None:
+                self._parent.set_template(tp)
+            if tc is not None:
+                self._child.set_template(tc)
 
     @property
     def frozen(self) -> bool:
@@ -522,6 +535,14 @@ class OnlineJoint:
     def n_window(self) -> int:
         """Frames in the window (frames added, under forgetting)."""
         return 0 if self._sums is None else self._sums.n_window
+
+    @property
+    def length_scale(self) -> float:
+        """The larger rms radius of the two templates (input units; 0 until they exist)."""
+        if not self.templates_ready:
+            return 0.0
+        assert self._parent is not None and self._child is not None
+        return max(self._parent.rms_radius, self._child.rms_radius)
 
     @property
     def noise_std(self) -> tuple[float, float]:
@@ -722,12 +743,12 @@ class OnlineJoint:
         if self._solution is not None and (self._frozen or not self._dirty):
             return self._solution
         sums, Wp_unit, Wc_unit, sigma_p, sigma_c = self.pose_sums()
-        if self._noise_arg is not None:
-            sigma_p, sigma_c = self._noise_arg
+        sigma_p = sigma_p if self._noise_arg[0] is None else self._noise_arg[0]
+        sigma_c = sigma_c if self._noise_arg[1] is None else self._noise_arg[1]
         assert self._parent is not None and self._child is not None
         Wp = sigma_p**2 * Wp_unit
         Wc = sigma_c**2 * Wc_unit
-        scale = max(self._parent.rms_radius, self._child.rms_radius)
+        scale = self.length_scale
         sol: PoseSumsCentre | PoseSumsAxis
         if self.kind == "ball":
             sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale)
@@ -826,8 +847,8 @@ class OnlineJoint:
             "template_child": c_tpl.tolist(),
             "noise_std_parent": self._sigma[0],
             "noise_std_child": self._sigma[1],
-            "noise_std_fixed": self._noise_arg is not None,
-            "templates_fixed": self._templates_arg is not None,
+            "noise_std_fixed": [v is not None for v in self._noise_arg],
+            "templates_fixed": [v is not None for v in self._templates_arg],
             "estimate": fit,
         }
 
@@ -861,10 +882,9 @@ class OnlineJoint:
                 template_frames=int(data.get("template_frames", 50)),
                 reference_direction=data.get("reference_direction"),
                 n_markers=(int(data["n_markers"][0]), int(data["n_markers"][1])),
-                noise_std=(
-                    (float(data["noise_std_parent"]), float(data["noise_std_child"]))
-                    if data.get("noise_std_fixed")
-                    else None
+                noise_std=tuple(  # type: ignore[arg-type]
+                    float(data[f"noise_std_{side}"]) if fixed else None
+                    for side, fixed in zip(("parent", "child"), data.get("noise_std_fixed", [False, False]), strict=True)
                 ),
             )
             tp = np.array(data["template_parent"], dtype=np.float64)
@@ -880,8 +900,8 @@ class OnlineJoint:
             assert est._parent is not None and est._child is not None
             est._parent.set_template(tp)
             est._child.set_template(tc)
-            if data.get("templates_fixed"):
-                est._templates_arg = (tp, tc)
+            tf = data.get("templates_fixed", [False, False])
+            est._templates_arg = (tp if tf[0] else None, tc if tf[1] else None)
             fit = data["estimate"]
             if est.kind == "ball":
                 est._solution = fit_from_dict(PoseSumsCentre, fit)

@@ -81,14 +81,14 @@ class JointRunner:
         self.uses_marker_topic = bool(cfg.parent_markers or cfg.child_markers)
         self.matcher: StampMatcher | None = None
         self._virtual: FloatArray | None = None
-        templates: tuple[FloatArray, FloatArray] | None = None
-        noise: tuple[float, float] | None = None
+        templates: tuple[FloatArray | None, FloatArray | None] = (None, None)
+        noise: tuple[float | None, float | None] = (None, None)
         if cfg.parent_pose_topic or cfg.child_pose_topic:
             self.matcher = StampMatcher(tolerance_ns=round(node.sync_tolerance * 1e9))
             virtual, sigma = virtual_markers_template(cfg.pose_translation_sd, math.radians(cfg.pose_rotation_sd_deg))
             self._virtual = virtual
-            if cfg.parent_pose_topic and cfg.child_pose_topic:
-                templates, noise = (virtual, virtual), (sigma, sigma)
+            templates = (virtual if cfg.parent_pose_topic else None, virtual if cfg.child_pose_topic else None)
+            noise = (sigma if cfg.parent_pose_topic else None, sigma if cfg.child_pose_topic else None)
         self._template_args = templates
         self._noise_args = noise
         self.counters = {"frames": 0, "outputs": 0, "malformed": 0, "unmatched": 0, "estimate_failures": 0}
@@ -109,6 +109,7 @@ class JointRunner:
             template_frames=self.cfg.template_frames,
             templates=self._template_args,
             noise_std=self._noise_args,
+            n_markers=(len(self.parent_rows) or 4, len(self.child_rows) or 4),  # 4 virtual markers for poses
             **self.cfg.window_kwargs(),
         )
 

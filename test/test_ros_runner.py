@@ -1,0 +1,227 @@
+"""The node's pure-Python parts: parameters, stamp pairing and the per-joint runner (no rclpy)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from jointfit_core.errors import InputError
+from jointfit_core.synthetic import two_segment_motion
+from jointfit_ros.params import JOINT_PARAMS, NODE_PARAMS, ConfigError, check_value, node_config
+from jointfit_ros.runner import OK, STALE, WARN, JointRunner
+from jointfit_ros.sync import StampMatcher
+
+FloatArray = NDArray[np.float64]
+NAMES = [f"P{i}" for i in range(4)] + [f"C{i}" for i in range(4)]
+
+
+def _values(**extra: Any) -> dict[str, Any]:
+    values: dict[str, Any] = {
+        "joints": ["hip"],
+        "marker_names": NAMES,
+        "hip.parent_markers": NAMES[:4],
+        "hip.child_markers": NAMES[4:],
+    }
+    values.update(extra)
+    return values
+
+
+# --------------------------------------------------------------------------- parameters
+
+
+def test_every_parameter_is_described_with_a_valid_default() -> None:
+    for spec in NODE_PARAMS + JOINT_PARAMS:
+        assert spec.description.endswith(".") and len(spec.description) > 20, spec.name
+        assert check_value(spec, None) == spec.default
+        check_value(spec, spec.default)  # the default passes its own checks
+
+
+def test_node_config_defaults_and_window_choice() -> None:
+    cfg = node_config(_values())
+    hip = cfg.joints[0]
+    assert hip.type == "ball" and hip.window_kwargs() == {"window": 3000}
+    assert hip.local_frame_id == "hip_parent"
+    assert cfg.marker_index("C0") == 4
+    assert node_config(_values(**{"hip.window_s": 2.0})).joints[0].window_kwargs() == {"window_s": 2.0}
+    assert node_config(_values(**{"hip.half_life_s": 1.0})).joints[0].window_kwargs() == {"half_life_s": 1.0}
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"joints": []}, "at least one joint"),
+        ({"joints": ["hip", "hip"]}, "twice"),
+        ({"joints": ["9lives"]}, "not a valid name"),
+        ({"marker_type": "csv"}, "one of"),
+        ({"qos_depth": 0}, ">= 1"),
+        ({"estimate_period": "fast"}, "finite number"),
+        ({"marker_names": [*NAMES, "P0"]}, "twice"),
+        ({"hip.parent_markers": NAMES[:2]}, "at least 3"),
+        ({"hip.child_markers": ["C0", "C1", "X9"]}, "not in marker_names"),
+        ({"hip.child_markers": ["P0", "C1", "C2"]}, "both the parent and the child"),
+        ({"hip.type": "saddle"}, "one of"),
+        ({"hip.window": 2}, ">= 3"),
+        ({"hip.window_s": 1.0, "hip.half_life_s": 1.0}, "not both"),
+        ({"hip.axis_toward_marker": "C0"}, "only for hinges"),
+        ({"hip.type": "hinge", "hip.axis_toward_marker": "Z"}, "joint's markers"),
+        ({"hip.parent_pose_topic": "/pelvis/pose"}, "not both"),
+        ({"unlabelled": True}, "pointcloud2"),
+    ],
+)
+def test_bad_parameters_name_the_parameter(change: dict[str, Any], match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        node_config(_values(**change))
+
+
+# --------------------------------------------------------------------------- stamp pairing
+
+
+def test_stamp_matcher_pairs_within_tolerance_and_counts_the_rest() -> None:
+    m = StampMatcher(tolerance_ns=1000, max_pending=3)
+    assert m.add(0, 10_000, "p0") is None
+    assert m.add(1, 10_500, "c0") == (10_000, "p0", "c0")
+    assert m.add(1, 20_000, "c1") is None
+    assert m.add(0, 25_000, "p1") is None  # too far from c1
+    assert m.add(0, 30_000, "p2") is None
+    assert m.add(1, 30_200, "c2") == (30_000, "p2", "c2")  # c1, p1 can no longer pair
+    assert m.unmatched == 2 and m.matched == 2
+    assert m.add(0, 29_000, "late") is None  # backwards
+    assert m.unmatched == 3
+    for k in range(5):
+        m.add(1, 40_000 + 10_000 * k, k)
+    assert m.unmatched == 5  # the child queue holds at most 3
+
+
+# --------------------------------------------------------------------------- runner
+
+
+def _stream(kind: str, n: int, seed: int = 0) -> tuple[FloatArray, FloatArray, object]:
+    rng = np.random.default_rng(seed)
+    motion = two_segment_motion(rng, kind=kind)
+    times = np.arange(n) / 100.0
+    yp, yc = motion.markers_at(times)
+    frames = np.concatenate([yp, yc], axis=1) + rng.normal(0.0, 0.5, (n, 8, 3))
+    return frames, times, motion
+
+
+def test_runner_estimates_reports_and_saves(tmp_path: Any) -> None:
+    path = tmp_path / "hip.yaml"
+    cfg = node_config(_values(**{"hip.window": 800, "hip.template_frames": 20, "hip.calibration_file": str(path)}))
+    runner = JointRunner(cfg.joints[0], cfg)
+    assert runner.status().level == STALE
+    frames, times, motion = _stream("ball", 1000)
+    outputs = 0
+    for k in range(frames.shape[0]):
+        out = runner.markers_frame(int(times[k] * 1e9), frames[k])
+        runner.estimate(times[k])
+        outputs += out is not None
+    assert outputs > 900
+    truth = motion.centre_world_at(times[-1:])[0]  # type: ignore[attr-defined]
+    assert np.linalg.norm(out.position - truth) < 5.0  # type: ignore[union-attr]
+    st = runner.status()
+    assert st.level == OK and st.values["frames in window"] == 800
+    assert st.values["input rate (Hz)"] == pytest.approx(100.0, rel=0.01)
+    assert runner.save() == str(path) and path.exists()
+    assert "frozen" in runner.freeze(True)
+
+    # A new runner (a restarted node) loads the file and starts frozen, with outputs at once.
+    again = JointRunner(cfg.joints[0], cfg)
+    assert again.estimator.frozen and again.loaded_from == str(path)
+    out2 = again.markers_frame(int(times[-1] * 1e9), frames[-1])
+    assert out2 is not None and np.linalg.norm(out2.position - truth) < 5.0
+    again.reset()
+    assert not again.estimator.frozen and again.estimator.solution is None
+
+
+def test_runner_survives_bad_frames_and_bad_files(tmp_path: Any) -> None:
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("format: jointfit-calibration\nversion: 1\nkind: [unclosed\n")
+    cfg = node_config(_values(**{"hip.calibration_file": str(broken)}))
+    runner = JointRunner(cfg.joints[0], cfg)
+    assert "not loaded" in runner.last_error and not runner.estimator.frozen
+    assert runner.process(1, np.zeros((3, 3)), np.zeros((4, 3))) is None  # wrong marker count: first frame
+    assert runner.process(2, np.full((4, 3), np.inf), np.zeros((4, 3))) is None
+    assert runner.counters["malformed"] == 2
+    with pytest.raises(InputError, match="no frame has entered"):
+        runner.freeze(True)
+    assert runner.status().level in (WARN, STALE)
+
+
+def test_hinge_sign_points_toward_the_named_marker() -> None:
+    frames, times, _ = _stream("hinge", 600, seed=3)
+    for marker in ("C0", "C3", "P1"):
+        cfg = node_config(
+            _values(**{"hip.type": "hinge", "hip.axis_toward_marker": marker, "hip.template_frames": 20})
+        )
+        runner = JointRunner(cfg.joints[0], cfg)
+        row = NAMES.index(marker)
+        for k in range(frames.shape[0]):
+            out = runner.markers_frame(int(times[k] * 1e9), frames[k])
+            runner.estimate(times[k])
+            if out is not None and k > 300:
+                assert out.direction is not None
+                assert out.direction @ (frames[k, row] - out.position) > 0.0, marker
+
+
+def test_pose_inputs_are_paired_by_stamp() -> None:
+    rng = np.random.default_rng(5)
+    motion = two_segment_motion(rng, kind="ball")
+    values = _values(
+        **{
+            "hip.parent_markers": [],
+            "hip.child_markers": [],
+            "hip.parent_pose_topic": "/pelvis",
+            "hip.child_pose_topic": "/thigh",
+            "hip.pose_translation_sd": 0.3,
+            "hip.pose_rotation_sd_deg": 0.2,
+            "sync_tolerance": 0.001,
+        }
+    )
+    cfg = node_config(values)
+    runner = JointRunner(cfg.joints[0], cfg)
+    times = np.arange(600) / 100.0
+    R_p, d_p, R_c, d_c = motion.poses_at(times)
+    outs = []
+    for k in range(times.size):
+        stamp = int(times[k] * 1e9)
+        runner.pose(0, stamp, R_p[k], d_p[k])
+        if k % 10 == 5:
+            continue  # a lost child message
+        out = runner.pose(1, stamp + 200_000, R_c[k], d_c[k])  # child stamped 0.2 ms later
+        runner.estimate(times[k])
+        outs.append(out)
+    assert runner.counters["unmatched"] == 60
+    assert runner.counters["frames"] == 540
+    last = next(o for o in reversed(outs) if o is not None)
+    # noise-free poses: exact but for the bias correction of the stated pose noise (micrometres)
+    assert np.linalg.norm(last.position - motion.centre_world_at(times[-1:])[0]) < 0.05
+
+
+def test_markers_for_one_segment_and_a_pose_topic_for_the_other() -> None:
+    frames, times, motion = _stream("ball", 700, seed=9)
+    values = _values(
+        **{
+            "hip.child_markers": [],
+            "hip.child_pose_topic": "/thigh",
+            "hip.pose_translation_sd": 0.5,
+            "hip.pose_rotation_sd_deg": 0.3,
+            "hip.template_frames": 20,
+        }
+    )
+    cfg = node_config(values)
+    runner = JointRunner(cfg.joints[0], cfg)
+    _, _, R_c, d_c = motion.poses_at(times)  # type: ignore[attr-defined]
+    out = None
+    for k in range(times.size):
+        stamp = int(times[k] * 1e9)
+        runner.markers_frame(stamp, frames[k])
+        got = runner.pose(1, stamp, R_c[k], d_c[k])
+        out = got if got is not None else out
+        runner.estimate(times[k])
+    assert runner.counters["unmatched"] == 0 and out is not None
+    truth = motion.centre_world_at(times[-1:])[0]  # type: ignore[attr-defined]
+    assert np.linalg.norm(out.position - truth) < 5.0
+    assert runner.estimator.noise_std[1] == pytest.approx(1.0)  # 2 x the stated translation sd
