@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 ROS_DOMAIN_ID ?= 42
 ROS_ENV := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID=$(ROS_DOMAIN_ID)
 
-.PHONY: venv lint test demo bench clean
+.PHONY: venv lint test demo demo-offline bench clean
 
 venv: $(STAMP)
 
@@ -30,6 +30,10 @@ test: venv lint
 	$(ROS_ENV) $(BIN)/python -m pytest
 
 demo: venv
+	$(ROS_ENV) $(BIN)/python -m jointfit_ros.demo
+	$(ROS_ENV) $(BIN)/python -m jointfit_core.demo
+
+demo-offline: venv
 	$(ROS_ENV) $(BIN)/python -m jointfit_core.demo
 
 bench: venv

@@ -1,9 +1,9 @@
 """Offline demo on the real fixtures: hip centre, knee axis, and an elbow that is no hinge.
 
-Run with ``make demo`` (or ``python -m jointfit_core.demo [DATA_DIR]``). It
-reads the C3D recordings shipped in ``test/data`` and prints each estimate
-with its uncertainty and verdict, next to what the literature or anatomy
-says. Until the ROS node lands, this is the project's main job.
+Run with ``make demo-offline`` (``make demo`` runs it after the live ROS demo),
+or ``python -m jointfit_core.demo [DATA_DIR]``. It reads the C3D recordings
+shipped in ``test/data`` and prints each estimate with its uncertainty and
+verdict, next to what the literature or anatomy says.
 """
 
 from __future__ import annotations
