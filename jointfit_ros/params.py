@@ -227,14 +227,15 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "calibration_file",
         "string",
         "",
-        "YAML file for ~/save; loaded at start when it exists (the joint then starts frozen). Empty: none.",
+        "YAML file for ~/save (~ is expanded); loaded at start when it exists (the joint then starts frozen). "
+        "Empty: none.",
     ),
     ParamSpec(
         "axis_toward_marker",
         "string",
         "",
-        "Hinge sign: the axis direction points toward the side of this marker (parent or child); empty: the "
-        "parent-frame axis with the largest component is positive.",
+        "Hinge sign: the axis direction points toward the side of this marker (any name from marker_names); "
+        "empty: the parent-frame axis with the largest component is positive.",
     ),
     ParamSpec(
         "local_frame_id",
@@ -385,9 +386,12 @@ def _joint_config(name: str, values: Mapping[str, Any], marker_names: Sequence[s
     if marker:
         if v["type"] != "hinge":
             raise ConfigError(f"{name}.axis_toward_marker: only for hinges (type is {v['type']!r})")
-        if marker not in set(v["parent_markers"]) | set(v["child_markers"]):
+        if marker not in known:
+            raise ConfigError(f"{name}.axis_toward_marker: expected a name from marker_names, got {marker!r}")
+        if not (v["parent_markers"] or v["child_markers"]):
             raise ConfigError(
-                f"{name}.axis_toward_marker: expected one of the joint's markers, got {marker!r}"
+                f"{name}.axis_toward_marker: needs marker inputs (this joint reads only pose topics); "
+                "leave it empty"
             )
     return JointConfig(
         name=name,

@@ -113,9 +113,14 @@ class JointRunner:
             **self.cfg.window_kwargs(),
         )
 
+    @property
+    def calibration_path(self) -> Path | None:
+        """The calibration file with ``~`` expanded (None when not configured)."""
+        return Path(self.cfg.calibration_file).expanduser() if self.cfg.calibration_file else None
+
     def _load(self) -> None:
-        path = self.cfg.calibration_file
-        if not path or not Path(path).exists():
+        path = self.calibration_path
+        if path is None or not path.exists():
             return
         try:
             est = OnlineJoint.from_dict(load_calibration(path))
@@ -127,7 +132,7 @@ class JointRunner:
             return
         self.estimator = est
         self._sign_fixed = True  # the saved estimate carries its sign
-        self.loaded_from = path
+        self.loaded_from = str(path)
 
     # ------------------------------------------------------------------ inputs
 
@@ -250,9 +255,10 @@ class JointRunner:
         OSError
             The file cannot be written (the previous one is kept).
         """
-        if not self.cfg.calibration_file:
+        path = self.calibration_path
+        if path is None:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
-        return str(save_calibration(self.cfg.calibration_file, self.estimator.to_dict()))
+        return str(save_calibration(path, self.estimator.to_dict()))
 
     # ------------------------------------------------------------------ diagnostics
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,6 +40,23 @@ def test_every_parameter_is_described_with_a_valid_default() -> None:
         check_value(spec, spec.default)  # the default passes its own checks
 
 
+def test_example_configs_are_valid() -> None:
+    """Every config/*.yaml passes the node's checks (nested keys become <joint>.<name>)."""
+    yaml = pytest.importorskip("yaml")
+    paths = sorted((Path(__file__).resolve().parents[1] / "config").glob("*.yaml"))
+    assert len(paths) >= 4
+    for path in paths:
+        params = yaml.safe_load(path.read_text())["jointfit"]["ros__parameters"]
+        flat: dict[str, Any] = {}
+        for key, value in params.items():
+            if isinstance(value, dict):
+                flat.update({f"{key}.{k}": v for k, v in value.items()})
+            else:
+                flat[key] = value
+        cfg = node_config(flat)
+        assert [j.name for j in cfg.joints] == params["joints"], path
+
+
 def test_node_config_defaults_and_window_choice() -> None:
     cfg = node_config(_values())
     hip = cfg.joints[0]
@@ -66,7 +84,7 @@ def test_node_config_defaults_and_window_choice() -> None:
         ({"hip.window": 2}, ">= 3"),
         ({"hip.window_s": 1.0, "hip.half_life_s": 1.0}, "not both"),
         ({"hip.axis_toward_marker": "C0"}, "only for hinges"),
-        ({"hip.type": "hinge", "hip.axis_toward_marker": "Z"}, "joint's markers"),
+        ({"hip.type": "hinge", "hip.axis_toward_marker": "Z"}, "from marker_names"),
         ({"hip.parent_pose_topic": "/pelvis/pose"}, "not both"),
         ({"unlabelled": True}, "pointcloud2"),
     ],
