@@ -32,6 +32,7 @@ __all__ = [
     "check_value",
     "joint_param_names",
     "RUNTIME_PARAMS",
+    "parameters_markdown",
 ]
 
 
@@ -71,7 +72,7 @@ class ParamSpec:
 
 
 NODE_PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("joints", "string_array", [], "Names of the joints to estimate; each has <name>.* parameters."),
+    ParamSpec("joints", "string_array", [], "Names of the joints to estimate; each has `<name>.*` parameters."),
     ParamSpec("marker_topic", "string", "markers", "Topic with the labelled (or unlabelled) markers of all segments."),
     ParamSpec(
         "marker_type",
@@ -143,7 +144,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "local_rate",
         "double",
         10.0,
-        "Rate (Hz) of <joint>/centre_local and <joint>/axis_local; 0 disables them.",
+        "Rate (Hz) of `<joint>/centre_local` and `<joint>/axis_local`; 0 disables them.",
         minimum=0.0,
         runtime=True,
     ),
@@ -151,7 +152,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "rviz_rate",
         "double",
         5.0,
-        "Rate (Hz) of ~/markers (RViz MarkerArray); 0 disables it.",
+        "Rate (Hz) of `~/markers` (RViz MarkerArray); 0 disables it.",
         minimum=0.0,
         runtime=True,
     ),
@@ -227,7 +228,7 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "calibration_file",
         "string",
         "",
-        "YAML file for ~/save (~ is expanded); loaded at start when it exists (the joint then starts frozen). "
+        "YAML file for `~/save` (`~` is expanded); loaded at start when it exists (the joint then starts frozen). "
         "Empty: none.",
     ),
     ParamSpec(
@@ -241,7 +242,7 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "local_frame_id",
         "string",
         "",
-        "frame_id of <joint>/centre_local (the parent template frame); empty: '<joint>_parent'.",
+        "frame_id of `<joint>/centre_local` (the parent template frame); empty: `<joint>_parent`.",
     ),
 )
 
@@ -462,3 +463,30 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         ellipsoid_sigma=v["ellipsoid_sigma"],
         joints=configs,
     )
+
+
+def _default_text(spec: ParamSpec) -> str:
+    if spec.kind == "string_array":
+        return "(required)" if spec.name in ("joints",) else "`[]`"
+    if spec.kind == "string":
+        return f'`"{spec.default}"`'
+    if spec.kind == "bool":
+        return "`true`" if spec.default else "`false`"
+    return f"`{spec.default}`"
+
+
+def parameters_markdown() -> str:
+    """The parameter tables of the README (generated from the specs, so that they stay true)."""
+    lines = ["| parameter | type | default | run-time | meaning |", "|---|---|---|---|---|"]
+    for spec in NODE_PARAMS:
+        choices = f" One of: {', '.join(spec.choices)}." if spec.choices else ""
+        lines.append(
+            f"| `{spec.name}` | {spec.kind} | {_default_text(spec)} | {'yes' if spec.runtime else 'no'} | "
+            f"{spec.description}{choices} |"
+        )
+    lines += ["", "Per joint, under its name (`hip.type`, ...):", ""]
+    lines += ["| parameter | type | default | meaning |", "|---|---|---|---|"]
+    for spec in JOINT_PARAMS:
+        choices = f" One of: {', '.join(spec.choices)}." if spec.choices else ""
+        lines.append(f"| `<joint>.{spec.name}` | {spec.kind} | {_default_text(spec)} | {spec.description}{choices} |")
+    return "\n".join(lines) + "\n"

@@ -13,3 +13,9 @@ def test_readme_python_blocks_run() -> None:
     assert blocks, "README has no python example"
     for block in blocks:
         exec(compile(block, str(README), "exec"), {"__name__": "readme_example"})
+
+
+def test_readme_parameter_tables_match_the_declarations() -> None:
+    from jointfit_ros.params import parameters_markdown
+
+    assert parameters_markdown() in README.read_text(), "README parameter tables are stale: paste parameters_markdown()"
