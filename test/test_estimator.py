@@ -373,3 +373,21 @@ def test_rigid_body_poses_through_virtual_markers() -> None:
         virtual_markers_template(0.0, 0.1)
     with pytest.raises(InputError, match="noise_std"):
         OnlineJoint("ball", window=10, noise_std=(1.0, -1.0))
+
+
+def test_a_marker_with_one_nan_coordinate_is_missing_as_a_whole() -> None:
+    rng = np.random.default_rng(6)
+    motion = two_segment_motion(rng, kind="ball")
+    yp, yc, times = _stream(rng, motion, 300)
+    a = OnlineJoint("ball", window=200, template_frames=20)
+    b = OnlineJoint("ball", window=200, template_frames=20)
+    partial, whole = yp.copy(), yp.copy()
+    partial[150:, 1, 2] = np.nan  # one coordinate, after the templates are built (fast path)
+    whole[150:, 1, :] = np.nan
+    outs_a = _run(a, partial, yc, times, solve_every=50)
+    outs_b = _run(b, whole, yc, times, solve_every=50)
+    for oa, ob in zip(outs_a, outs_b, strict=True):
+        assert (oa is None) == (ob is None)
+        if oa is not None and ob is not None:
+            np.testing.assert_array_equal(oa.position, ob.position)
+    assert a.estimate().centre_parent.tolist() == b.estimate().centre_parent.tolist()  # type: ignore[union-attr]
