@@ -77,3 +77,21 @@ def test_ros_wheels_import() -> None:
     for msg_type in (PoseArray, PointCloud2, DiagnosticArray, MarkerArray):
         assert msg_type().__class__ is msg_type
     assert Trigger.Request is not None and Trigger.Response is not None
+
+
+#: jointfit_ros modules the offline tools use: they must work without ROS too.
+ROS_FREE = ["jointfit_ros.raw", "jointfit_ros.params", "jointfit_ros.sync", "jointfit_ros.runner"]
+
+
+def test_offline_parts_of_jointfit_ros_never_import_ros() -> None:
+    """Parsers, parameters, pairing and the runner are pure Python/numpy (the offline CLI needs them)."""
+    code = "import importlib, json, sys\n" + "".join(f"importlib.import_module({m!r})\n" for m in ROS_FREE)
+    code += "print(json.dumps(sorted(sys.modules)))"
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert proc.returncode == 0, proc.stderr
+    ros_modules = [name for name in json.loads(proc.stdout.strip().splitlines()[-1]) if _is_ros_module(name)]
+    assert ros_modules == [], f"{ROS_FREE} imported ROS modules: {ros_modules}"

@@ -1,0 +1,942 @@
+"""Raw ROS message bytes <-> numpy, without ROS: parsers, marker ordering, serializers.
+
+Pure numpy/scipy (no rclpy, no message packages), so that the offline tools
+(rosbag2 files read with ``rosbags``, the ``jointfit`` CLI) share the node's
+exact parsing. :mod:`jointfit_ros.conversions` re-exports everything here and
+adds the builders of output message objects.
+
+* **Raw CDR parsers** (:func:`parse_pose_array`, :func:`parse_pointcloud2`,
+  :func:`parse_pose_stamped`) read the serialized bytes a subscription created
+  with ``raw=True`` (or a rosbag2 file) delivers, with ``numpy.frombuffer`` and
+  strided views: no Python message object, no Python loop per point.
+* **Message-object versions** (:func:`points_from_pose_array`, ...) for callers
+  that already hold a message object (rclpy or rosbags types).
+* **Marker ordering** (:func:`frame_from_points`, :func:`label_points`).
+* **Serializers** (:func:`pose_array_bytes`, :func:`pointcloud2_bytes`).
+* **Rotations** (:func:`rotation_matrix_from_quaternion`, ...).
+
+CDR layout (OMG XCDR version 1, what ``rmw_fastrtps`` and ``rmw_cyclonedds``
+send for ROS 2 types): a 4-byte encapsulation header (``00 00`` big-endian
+or ``00 01`` little-endian, then two option bytes), then the message, in which
+every primitive of size 2, 4 or 8 is aligned to its size, counted from the
+first byte *after* the encapsulation header. Strings are a ``uint32`` length
+that includes the terminating NUL, then the bytes; sequences are a ``uint32``
+count, then the elements. Padding bytes carry no meaning (Fast DDS leaves them
+uninitialised). Other encapsulations (parameter lists, XCDR2) are rejected
+with :class:`ConversionError`.
+
+Occlusion conventions: a NaN row is a missing marker; an exact ``(0, 0, 0)``
+point is also missing when ``zero_is_missing`` is true, since mocap4ros2's
+Vicon driver sends occluded markers as zeros.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, DTypeLike, NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
+
+from jointfit_core.errors import JointfitError
+
+__all__ = [
+    "ConversionError",
+    "RawPoints",
+    "RawPose",
+    "LabelProblems",
+    "parse_pose_array",
+    "parse_pointcloud2",
+    "parse_pose_stamped",
+    "points_from_pose_array",
+    "points_from_pointcloud2",
+    "pose_from_pose_stamped",
+    "frame_from_points",
+    "label_problems",
+    "label_points",
+    "pose_array_bytes",
+    "pointcloud2_bytes",
+    "ns_from_stamp",
+    "rotation_matrix_from_quaternion",
+    "quaternion_from_rotation_matrix",
+    "quaternion_z_to_direction",
+]
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+Buffer = bytes | bytearray | memoryview
+
+_NS_PER_S = 1_000_000_000
+_CDR_BE = b"\x00\x00"
+_CDR_LE = b"\x00\x01"
+
+# sensor_msgs/PointField datatypes -> (name, numpy kind + size)
+_POINTFIELD_TYPES: dict[int, tuple[str, str]] = {
+    1: ("INT8", "i1"),
+    2: ("UINT8", "u1"),
+    3: ("INT16", "i2"),
+    4: ("UINT16", "u2"),
+    5: ("INT32", "i4"),
+    6: ("UINT32", "u4"),
+    7: ("FLOAT32", "f4"),
+    8: ("FLOAT64", "f8"),
+}
+_FLOAT_TYPES = (7, 8)
+_INT_TYPES = (1, 2, 3, 4, 5, 6)
+
+
+class ConversionError(JointfitError, ValueError):
+    """A message cannot be converted: malformed bytes, wrong fields, wrong shapes.
+
+    The message says what was expected and what came.
+    """
+
+
+@dataclass(frozen=True)
+class RawPoints:
+    """Points of a marker message (PoseArray or PointCloud2).
+
+    Attributes
+    ----------
+    stamp_ns : int
+        ``header.stamp`` in nanoseconds.
+    frame_id : str
+        ``header.frame_id``.
+    points : ndarray, shape (N, 3), float64
+        Positions in the message's units (metres for REP 103 publishers).
+        NaN where the message has NaN.
+    labels : ndarray, shape (N,), int64, or None
+        Per-point integer labels of a labelled point cloud, else None.
+    """
+
+    stamp_ns: int
+    frame_id: str
+    points: FloatArray
+    labels: IntArray | None
+
+
+@dataclass(frozen=True)
+class RawPose:
+    """A ``geometry_msgs/PoseStamped``.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        ``header.stamp`` in nanoseconds.
+    frame_id : str
+        ``header.frame_id``.
+    position : ndarray, shape (3,), float64
+        Position in the message's units.
+    quaternion : ndarray, shape (4,), float64
+        Orientation as sent, (x, y, z, w); not normalised.
+    """
+
+    stamp_ns: int
+    frame_id: str
+    position: FloatArray
+    quaternion: FloatArray
+
+
+@dataclass(frozen=True)
+class LabelProblems:
+    """Labels of a cloud that :func:`frame_from_points` could not use.
+
+    Attributes
+    ----------
+    out_of_range : int
+        Points whose label is negative or not below the number of markers.
+    duplicated : int
+        Markers (rows) that more than one point claimed; the row is set missing.
+    """
+
+    out_of_range: int
+    duplicated: int
+
+
+# --------------------------------------------------------------------------- CDR reading
+
+
+class _Reader:
+    """Sequential reader of one CDR (XCDR1) buffer with bounds checks."""
+
+    __slots__ = ("buf", "end", "kind", "pos", "prefix")
+
+    def __init__(self, buf: Buffer, kind: str) -> None:
+        self.kind = kind
+        self.buf = buf
+        self.end = len(buf)
+        if self.end < 4:
+            raise ConversionError(
+                f"{kind}: expected at least the 4-byte CDR encapsulation header, got {self.end} bytes"
+            )
+        rep = bytes(buf[0:2])
+        if rep == _CDR_LE:
+            self.prefix = "<"
+        elif rep == _CDR_BE:
+            self.prefix = ">"
+        else:
+            raise ConversionError(
+                f"{kind}: expected CDR encapsulation 00 00 (big-endian) or 00 01 (little-endian), "
+                f"got {rep.hex(' ')} (parameter-list or XCDR2 encodings are not supported)"
+            )
+        self.pos = 4
+
+    def align(self, n: int) -> None:
+        # alignment counts from the byte after the encapsulation header (offset 4)
+        self.pos += (-(self.pos - 4)) % n
+
+    def need(self, n: int, what: str) -> None:
+        if n < 0 or self.pos + n > self.end:
+            raise ConversionError(
+                f"{self.kind}: truncated: {what} needs {n} bytes at offset {self.pos}, "
+                f"message has {self.end} bytes"
+            )
+
+    def u32(self, what: str) -> int:
+        self.align(4)
+        self.need(4, what)
+        (value,) = struct.unpack_from(self.prefix + "I", self.buf, self.pos)
+        self.pos += 4
+        return int(value)
+
+    def u8(self, what: str) -> int:
+        self.need(1, what)
+        value = self.buf[self.pos]
+        self.pos += 1
+        return int(value)
+
+    def stamp_ns(self) -> int:
+        self.align(4)
+        self.need(8, "header.stamp")
+        sec, nanosec = struct.unpack_from(self.prefix + "iI", self.buf, self.pos)
+        self.pos += 8
+        return int(sec) * _NS_PER_S + int(nanosec)
+
+    def string(self, what: str) -> str:
+        n = self.u32(what + " length")
+        self.need(n, what)
+        raw = bytes(self.buf[self.pos : self.pos + n])
+        self.pos += n
+        if raw.endswith(b"\x00"):
+            raw = raw[:-1]
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ConversionError(f"{self.kind}: {what} is not valid UTF-8: {exc}") from None
+
+    def header(self) -> tuple[int, str]:
+        stamp = self.stamp_ns()
+        return stamp, self.string("header.frame_id")
+
+    def float64s(self, count: int, what: str) -> FloatArray:
+        self.align(8)
+        self.need(8 * count, what)
+        out = np.frombuffer(self.buf, dtype=self.prefix + "f8", count=count, offset=self.pos)
+        self.pos += 8 * count
+        return out
+
+
+def parse_pose_array(raw: Buffer) -> RawPoints:
+    """Positions of a serialized ``geometry_msgs/PoseArray``.
+
+    Parameters
+    ----------
+    raw : bytes
+        CDR bytes as delivered by a ``raw=True`` subscription (encapsulation
+        header included), little- or big-endian.
+
+    Returns
+    -------
+    RawPoints
+        ``points`` shape (N, 3) float64 (the pose positions, NaN kept);
+        orientations are ignored; ``labels`` is None.
+
+    Raises
+    ------
+    ConversionError
+        Unknown encapsulation, truncated bytes, invalid UTF-8 frame id.
+    """
+    r = _Reader(raw, "PoseArray")
+    stamp, frame_id = r.header()
+    n = r.u32("poses length")
+    if n == 0:
+        points = np.empty((0, 3))
+    else:
+        poses = r.float64s(7 * n, f"{n} poses").reshape(n, 7)
+        points = np.array(poses[:, :3], dtype=np.float64, order="C")
+    return RawPoints(stamp_ns=stamp, frame_id=frame_id, points=points, labels=None)
+
+
+def parse_pose_stamped(raw: Buffer) -> RawPose:
+    """Position and orientation of a serialized ``geometry_msgs/PoseStamped``.
+
+    Parameters
+    ----------
+    raw : bytes
+        CDR bytes (encapsulation header included).
+
+    Returns
+    -------
+    RawPose
+        ``position`` shape (3,), ``quaternion`` shape (4,) as (x, y, z, w).
+
+    Raises
+    ------
+    ConversionError
+        Unknown encapsulation or truncated bytes.
+    """
+    r = _Reader(raw, "PoseStamped")
+    stamp, frame_id = r.header()
+    values = np.array(r.float64s(7, "pose"), dtype=np.float64)
+    return RawPose(stamp_ns=stamp, frame_id=frame_id, position=values[:3], quaternion=values[3:])
+
+
+@dataclass(frozen=True)
+class _Field:
+    name: str
+    offset: int
+    datatype: int
+    count: int
+
+
+def _field_text(fields: Sequence[_Field]) -> str:
+    parts = []
+    for f in fields:
+        type_name = _POINTFIELD_TYPES.get(f.datatype, (f"datatype {f.datatype}", ""))[0]
+        parts.append(f"{f.name}: {type_name} @{f.offset}" + (f" x{f.count}" if f.count > 1 else ""))
+    return "[" + ", ".join(parts) + "]"
+
+
+def _cloud_from_buffer(
+    buf: Any,
+    data_offset: int,
+    data_len: int,
+    *,
+    fields: Sequence[_Field],
+    height: int,
+    width: int,
+    point_step: int,
+    row_step: int,
+    big_endian: bool,
+    label_field: str | None,
+) -> tuple[FloatArray, IntArray | None]:
+    """Points (and labels) of a PointCloud2 whose ``data`` is ``buf[data_offset:data_offset + data_len]``."""
+    by_name = {f.name: f for f in fields}
+    wanted = ["x", "y", "z"] + ([label_field] if label_field is not None else [])
+    missing = [name for name in wanted if name not in by_name]
+    if missing:
+        raise ConversionError(
+            "PointCloud2: expected fields x, y, z (FLOAT32 or FLOAT64)"
+            + (f" and an integer field {label_field!r}" if label_field is not None else "")
+            + f"; missing {missing}, got fields {_field_text(fields)}"
+        )
+    for name in wanted:
+        f = by_name[name]
+        allowed = _INT_TYPES if name == label_field else _FLOAT_TYPES
+        if f.datatype not in allowed:
+            expected = (
+                "an integer datatype (INT8..UINT32)" if name == label_field else "FLOAT32 (7) or FLOAT64 (8)"
+            )
+            raise ConversionError(
+                f"PointCloud2: field {name!r}: expected {expected}, got "
+                f"{_POINTFIELD_TYPES.get(f.datatype, (str(f.datatype), ''))[0]}; fields {_field_text(fields)}"
+            )
+        if f.count > 1:
+            raise ConversionError(f"PointCloud2: field {name!r}: expected count 1, got {f.count}")
+        size = int(_POINTFIELD_TYPES[f.datatype][1][1])
+        if f.offset + size > point_step:
+            raise ConversionError(
+                f"PointCloud2: field {name!r} at offset {f.offset} ({size} bytes) does not fit in point_step {point_step}"
+            )
+    n = height * width
+    if n == 0:
+        return np.empty((0, 3)), (np.empty(0, dtype=np.int64) if label_field is not None else None)
+    if row_step < width * point_step:
+        raise ConversionError(
+            f"PointCloud2: row_step {row_step} is smaller than width * point_step = {width} * {point_step}"
+        )
+    needed = (height - 1) * row_step + width * point_step
+    if data_len < needed:
+        raise ConversionError(
+            f"PointCloud2: data has {data_len} bytes, expected at least {needed} "
+            f"(height {height}, width {width}, point_step {point_step}, row_step {row_step})"
+        )
+    order = ">" if big_endian else "<"
+
+    def column(f: _Field) -> NDArray[Any]:
+        view: NDArray[Any] = np.ndarray(
+            shape=(height, width),
+            dtype=order + _POINTFIELD_TYPES[f.datatype][1],
+            buffer=buf,
+            offset=data_offset + f.offset,
+            strides=(row_step, point_step),
+        )
+        return view.reshape(n)
+
+    fx, fy, fz = by_name["x"], by_name["y"], by_name["z"]
+    step = fy.offset - fx.offset
+    if fx.datatype == fy.datatype == fz.datatype and step == fz.offset - fy.offset and step > 0:
+        # the usual layout (x, y, z equally spaced, one type): one strided view
+        xyz: NDArray[Any] = np.ndarray(
+            shape=(height, width, 3),
+            dtype=order + _POINTFIELD_TYPES[fx.datatype][1],
+            buffer=buf,
+            offset=data_offset + fx.offset,
+            strides=(row_step, point_step, step),
+        )
+        points = xyz.reshape(n, 3).astype(np.float64)
+    else:
+        points = np.empty((n, 3), dtype=np.float64)
+        for k, f in enumerate((fx, fy, fz)):
+            points[:, k] = column(f)
+    labels = column(by_name[label_field]).astype(np.int64) if label_field is not None else None
+    return points, labels
+
+
+def _read_fields(r: _Reader, n_fields: int) -> list[_Field]:
+    """The ``sensor_msgs/PointField`` sequence (inlined reads: this loop dominates the parse time)."""
+    buf, end, u32 = r.buf, r.end, struct.Struct(r.prefix + "I").unpack_from
+    pos = r.pos
+    fields = []
+    for _ in range(n_fields):
+        pos += (-(pos - 4)) % 4
+        if pos + 4 > end:
+            break
+        (n,) = u32(buf, pos)
+        name_end = pos + 4 + n
+        pos = name_end + (-(name_end - 4)) % 4  # offset: uint32
+        if pos + 9 > end or n > end:
+            break
+        name = bytes(buf[name_end - n : name_end]).rstrip(b"\x00")
+        (offset,) = u32(buf, pos)
+        datatype = buf[pos + 4]
+        pos += 5
+        pos += (-(pos - 4)) % 4
+        if pos + 4 > end:
+            break
+        (count,) = u32(buf, pos)
+        pos += 4
+        try:
+            text = name.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ConversionError(f"{r.kind}: field name is not valid UTF-8: {exc}") from None
+        fields.append(_Field(text, int(offset), int(datatype), int(count)))
+    else:
+        r.pos = pos
+        return fields
+    r.pos = pos
+    raise ConversionError(
+        f"{r.kind}: truncated: field {len(fields)} of {n_fields} ends after the message ({end} bytes)"
+    )
+
+
+def parse_pointcloud2(raw: Buffer, *, label_field: str | None = None) -> RawPoints:
+    """Points (and optional integer labels) of a serialized ``sensor_msgs/PointCloud2``.
+
+    Parameters
+    ----------
+    raw : bytes
+        CDR bytes (encapsulation header included).
+    label_field : str or None
+        Name of an integer field (any of INT8 ... UINT32) holding the marker
+        label of each point, or None for an unlabelled cloud.
+
+    Returns
+    -------
+    RawPoints
+        ``points`` shape (height * width, 3) float64 from the fields x, y, z
+        (FLOAT32 or FLOAT64, any offsets within ``point_step``, rows
+        ``row_step`` apart, byte order from ``is_bigendian``), row-major over
+        (height, width); ``labels`` shape (N,) int64 or None.
+
+    Raises
+    ------
+    ConversionError
+        Truncated bytes; x, y, z or the label field missing, of the wrong
+        datatype, with count > 1 or not fitting in ``point_step``; ``data``
+        shorter than ``height``, ``width``, ``point_step`` and ``row_step`` need.
+    """
+    r = _Reader(raw, "PointCloud2")
+    stamp, frame_id = r.header()
+    height = r.u32("height")
+    width = r.u32("width")
+    n_fields = r.u32("fields length")
+    # each PointField takes at least 13 bytes: a too-large count is garbage, not a long loop
+    r.need(13 * n_fields, f"{n_fields} fields")
+    fields = _read_fields(r, n_fields)
+    big_endian = r.u8("is_bigendian") != 0
+    point_step = r.u32("point_step")
+    row_step = r.u32("row_step")
+    data_len = r.u32("data length")
+    r.need(data_len, "data")
+    points, labels = _cloud_from_buffer(
+        raw,
+        r.pos,
+        data_len,
+        fields=fields,
+        height=height,
+        width=width,
+        point_step=point_step,
+        row_step=row_step,
+        big_endian=big_endian,
+        label_field=label_field,
+    )
+    return RawPoints(stamp_ns=stamp, frame_id=frame_id, points=points, labels=labels)
+
+
+# --------------------------------------------------------------------------- message objects
+
+
+def ns_from_stamp(stamp: Any) -> int:
+    """Nanoseconds of a ``builtin_interfaces/Time`` (``sec * 1e9 + nanosec``, exact integer)."""
+    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+
+
+
+def points_from_pose_array(msg: Any) -> RawPoints:
+    """:class:`RawPoints` of a ``geometry_msgs/PoseArray`` message object (one Python step per pose)."""
+    points = np.array(
+        [(p.position.x, p.position.y, p.position.z) for p in msg.poses], dtype=np.float64
+    ).reshape(-1, 3)
+    return RawPoints(ns_from_stamp(msg.header.stamp), str(msg.header.frame_id), points, None)
+
+
+def points_from_pointcloud2(msg: Any, label_field: str | None = None) -> RawPoints:
+    """:class:`RawPoints` of a ``sensor_msgs/PointCloud2`` message object; same rules as :func:`parse_pointcloud2`."""
+    fields = [_Field(str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields]
+    data = msg.data
+    buf = data if isinstance(data, bytes | bytearray) else memoryview(data).cast("B")
+    points, labels = _cloud_from_buffer(
+        buf,
+        0,
+        len(buf),
+        fields=fields,
+        height=int(msg.height),
+        width=int(msg.width),
+        point_step=int(msg.point_step),
+        row_step=int(msg.row_step),
+        big_endian=bool(msg.is_bigendian),
+        label_field=label_field,
+    )
+    return RawPoints(ns_from_stamp(msg.header.stamp), str(msg.header.frame_id), points, labels)
+
+
+def pose_from_pose_stamped(msg: Any) -> RawPose:
+    """:class:`RawPose` of a ``geometry_msgs/PoseStamped`` message object."""
+    p, q = msg.pose.position, msg.pose.orientation
+    return RawPose(
+        ns_from_stamp(msg.header.stamp),
+        str(msg.header.frame_id),
+        np.array([p.x, p.y, p.z], dtype=np.float64),
+        np.array([q.x, q.y, q.z, q.w], dtype=np.float64),
+    )
+
+
+# --------------------------------------------------------------------------- marker ordering
+
+
+def _check_points(points: ArrayLike, name: str = "points") -> FloatArray:
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ConversionError(
+            f"{name}: expected a numeric array of shape (N, 3), got {type(points).__name__}: {exc}"
+        ) from None
+    if arr.ndim == 1 and arr.size == 0:
+        arr = arr.reshape(0, 3)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ConversionError(f"{name}: expected shape (N, 3), got shape {arr.shape}")
+    return arr
+
+
+def _mark_missing(frame: FloatArray, zero_is_missing: bool) -> FloatArray:
+    """Set rows with a non-finite coordinate (and exact zeros if asked) to NaN, in place."""
+    bad = ~np.isfinite(frame).all(axis=1)
+    if zero_is_missing:
+        bad |= (frame == 0.0).all(axis=1)
+    frame[bad] = np.nan
+    return frame
+
+
+def _check_labels(labels: ArrayLike, n_points: int) -> IntArray:
+    lab = np.asarray(labels)
+    if lab.shape != (n_points,) or not (lab.dtype.kind in "iu" or n_points == 0):
+        raise ConversionError(
+            f"labels: expected an integer array of shape ({n_points},) (one per point), "
+            f"got {lab.dtype} shape {lab.shape}"
+        )
+    return lab.astype(np.int64, copy=False)
+
+
+def label_problems(labels: ArrayLike, n_markers: int) -> LabelProblems:
+    """Count the labels :func:`frame_from_points` ignores.
+
+    Parameters
+    ----------
+    labels : array_like of int, shape (N,)
+    n_markers : int
+        Number of configured markers P.
+
+    Returns
+    -------
+    LabelProblems
+        Points with a label outside [0, P) and rows claimed by more than one point.
+    """
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    valid = (lab >= 0) & (lab < n_markers)
+    counts = np.bincount(lab[valid], minlength=n_markers)
+    return LabelProblems(
+        out_of_range=int(np.count_nonzero(~valid)), duplicated=int(np.count_nonzero(counts > 1))
+    )
+
+
+def frame_from_points(
+    points: ArrayLike,
+    n_markers: int,
+    *,
+    labels: ArrayLike | None = None,
+    zero_is_missing: bool = True,
+) -> FloatArray:
+    """Order the points of one message into the frame of the configured markers.
+
+    Parameters
+    ----------
+    points : array_like, shape (N, 3)
+        Points of one message (any length unit).
+    n_markers : int
+        Number of configured markers P.
+    labels : array_like of int, shape (N,), optional
+        Marker index of each point: label k goes to row k. Labels outside
+        [0, P) are ignored; a row that several points claim is set missing
+        (the identity is ambiguous). :func:`label_problems` counts both, for
+        diagnostics. Without labels, point i is marker i.
+    zero_is_missing : bool
+        Treat an exact (0, 0, 0) point as missing (mocap4ros2's Vicon driver
+        sends occluded markers as zeros). Default True.
+
+    Returns
+    -------
+    ndarray, shape (P, 3), float64
+        A new array; missing markers (no point, NaN or inf in any coordinate,
+        zeros if asked) are NaN rows.
+
+    Raises
+    ------
+    ConversionError
+        Bad shapes, or more unlabelled points than markers (the marker order
+        cannot be known; configure all published markers, or use labels).
+    """
+    pts = _check_points(points)
+    if n_markers < 0:
+        raise ConversionError(f"n_markers: expected a non-negative integer, got {n_markers}")
+    out = np.full((n_markers, 3), np.nan)
+    if labels is None:
+        if pts.shape[0] > n_markers:
+            raise ConversionError(
+                f"points: expected at most {n_markers} unlabelled points (one per configured marker, in order), "
+                f"got {pts.shape[0]}"
+            )
+        out[: pts.shape[0]] = pts
+    else:
+        lab = _check_labels(labels, pts.shape[0])
+        valid = (lab >= 0) & (lab < n_markers)
+        rows = lab[valid]
+        out[rows] = pts[valid]
+        counts = np.bincount(rows, minlength=n_markers)
+        out[counts > 1] = np.nan
+    return _mark_missing(out, zero_is_missing)
+
+
+def label_points(
+    points: ArrayLike, predicted: ArrayLike, gate: float, *, zero_is_missing: bool = True
+) -> FloatArray:
+    """Label an unlabelled cloud by optimal assignment to predicted marker positions.
+
+    For clouds without labels (e.g. IMRCLab ``motion_capture_tracking``
+    publishes a PointCloud2 of x, y, z float32 only): each predicted marker
+    gets at most one point and each point at most one marker, minimising the
+    summed distance (``scipy.optimize.linear_sum_assignment``); a pair farther
+    apart than ``gate`` is rejected (the marker is missing). Pairs beyond the
+    gate cost more than any set of in-gate pairs, so the assignment first
+    maximises the number of in-gate pairs, then minimises their distance.
+
+    Parameters
+    ----------
+    points : array_like, shape (M, 3)
+        The unlabelled points (NaN / inf rows, and exact zeros if
+        ``zero_is_missing``, are ignored).
+    predicted : array_like, shape (P, 3)
+        Where each marker is expected, e.g. the last labelled frame or a
+        constant-velocity prediction; NaN rows (no prediction) get NaN.
+    gate : float
+        Largest accepted distance between a point and its prediction (units
+        of the points), > 0.
+    zero_is_missing : bool
+        Ignore exact (0, 0, 0) points. Default True.
+
+    Returns
+    -------
+    ndarray, shape (P, 3), float64
+        Row k is the point assigned to marker k, NaN when none within the gate.
+
+    Raises
+    ------
+    ConversionError
+        Bad shapes or a non-positive gate.
+
+    Notes
+    -----
+    Limits: this is nearest-neighbour tracking, not marker identification.
+    It needs a prediction (an initial labelled frame or a known pose), and a
+    marker that has been missing keeps whatever prediction the caller gives.
+    Markers that move more than about half their mutual separation between
+    frames (fast motion, low rate, markers closer together than twice the
+    frame-to-frame displacement) can be swapped without any sign in the
+    distances; a gate of that half separation limits, but does not remove,
+    the risk. A ghost point within the gate of an occluded marker is taken
+    for it. Cost: O(max(M, P)^3) per frame, fine for tens of markers.
+    """
+    pts = _check_points(points)
+    pred = _check_points(predicted, "predicted")
+    if not (math.isfinite(gate) and gate > 0.0):
+        raise ConversionError(f"gate: expected a positive finite distance, got {gate}")
+    out = np.full(pred.shape, np.nan)
+    pts_ok = np.isfinite(pts).all(axis=1)
+    if zero_is_missing:
+        pts_ok &= ~(pts == 0.0).all(axis=1)
+    pred_ok = np.isfinite(pred).all(axis=1)
+    p_idx = np.flatnonzero(pred_ok)
+    q = pts[pts_ok]
+    if p_idx.size == 0 or q.shape[0] == 0:
+        return out
+    dist = np.linalg.norm(pred[p_idx, None, :] - q[None, :, :], axis=2)
+    outside = dist > gate
+    cost = np.where(outside, gate * (min(dist.shape) + 1.0), dist)
+    rows, cols = linear_sum_assignment(cost)
+    keep = ~outside[rows, cols]
+    out[p_idx[rows[keep]]] = q[cols[keep]]
+    return out
+
+
+# --------------------------------------------------------------------------- serializers
+
+
+def _cdr_header(stamp_ns: int, frame_id: str, prefix: str) -> bytearray:
+    sec, nanosec = divmod(int(stamp_ns), _NS_PER_S)
+    if not -(2**31) <= sec < 2**31:
+        raise ConversionError(f"stamp_ns: expected seconds within int32, got {stamp_ns} ns")
+    name = frame_id.encode("utf-8") + b"\x00"
+    out = bytearray(_CDR_BE if prefix == ">" else _CDR_LE)
+    out += b"\x00\x00"
+    out += struct.pack(prefix + "iII", sec, nanosec, len(name))
+    out += name
+    return out
+
+
+def _pad(out: bytearray, n: int) -> None:
+    out += b"\x00" * ((-(len(out) - 4)) % n)
+
+
+def pose_array_bytes(stamp_ns: int, frame_id: str, points: ArrayLike, *, big_endian: bool = False) -> bytes:
+    """CDR bytes of a ``geometry_msgs/PoseArray`` whose positions are ``points``.
+
+    Parameters
+    ----------
+    stamp_ns : int
+        ``header.stamp`` in nanoseconds.
+    frame_id : str
+        ``header.frame_id``.
+    points : array_like, shape (N, 3)
+        Positions (NaN allowed); orientations are the identity (0, 0, 0, 1).
+    big_endian : bool
+        Write big-endian CDR (for tests of readers); ROS middlewares on
+        little-endian hosts send little-endian. Default False.
+
+    Returns
+    -------
+    bytes
+        Ready for ``Publisher.publish`` (encapsulation header included).
+    """
+    pts = _check_points(points)
+    prefix = ">" if big_endian else "<"
+    out = _cdr_header(stamp_ns, frame_id, prefix)
+    _pad(out, 4)
+    n = pts.shape[0]
+    out += struct.pack(prefix + "I", n)
+    if n:
+        _pad(out, 8)
+        poses = np.zeros((n, 7), dtype=prefix + "f8")
+        poses[:, :3] = pts
+        poses[:, 6] = 1.0
+        out += poses.tobytes()
+    return bytes(out)
+
+
+def pointcloud2_bytes(
+    stamp_ns: int,
+    frame_id: str,
+    points: ArrayLike,
+    *,
+    labels: ArrayLike | None = None,
+    dtype: DTypeLike = np.float32,
+    big_endian: bool = False,
+) -> bytes:
+    """CDR bytes of an unorganised ``sensor_msgs/PointCloud2`` (height 1).
+
+    Parameters
+    ----------
+    stamp_ns : int
+        ``header.stamp`` in nanoseconds.
+    frame_id : str
+        ``header.frame_id``.
+    points : array_like, shape (N, 3)
+        Positions (NaN allowed; ``is_dense`` is then False).
+    labels : array_like of int, shape (N,), optional
+        Non-negative labels, written as a UINT32 field ``label`` after z.
+    dtype : float32 or float64
+        Type of the x, y, z fields. Default float32 (as most mocap drivers).
+    big_endian : bool
+        Write big-endian CDR and point data (``is_bigendian`` True), for tests.
+
+    Returns
+    -------
+    bytes
+        Ready for ``Publisher.publish``. Fields x, y, z at offsets 0, s, 2s
+        (s = 4 or 8), then ``label`` if given; ``point_step`` is the sum of
+        their sizes, ``row_step = width * point_step``.
+    """
+    pts = _check_points(points)
+    ftype = np.dtype(dtype)
+    if ftype not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ConversionError(f"dtype: expected float32 or float64, got {ftype}")
+    prefix = ">" if big_endian else "<"
+    size = ftype.itemsize
+    n = pts.shape[0]
+    names = ["x", "y", "z"]
+    formats = [prefix + ftype.str[1:]] * 3
+    field_specs = [
+        ("x", 0, 7 if size == 4 else 8),
+        ("y", size, 7 if size == 4 else 8),
+        ("z", 2 * size, 7 if size == 4 else 8),
+    ]
+    lab = None
+    if labels is not None:
+        lab = _check_labels(labels, n)
+        if n and lab.min() < 0:
+            raise ConversionError("labels: expected non-negative integers for a UINT32 field")
+        names.append("label")
+        formats.append(prefix + "u4")
+        field_specs.append(("label", 3 * size, 6))
+    rec = np.dtype({"names": names, "formats": formats})
+    data = np.empty(n, dtype=rec)
+    data["x"], data["y"], data["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    if lab is not None:
+        data["label"] = lab
+    point_step = rec.itemsize
+    out = _cdr_header(stamp_ns, frame_id, prefix)
+    _pad(out, 4)
+    out += struct.pack(prefix + "III", 1, n, len(field_specs))
+    for name, offset, datatype in field_specs:
+        _pad(out, 4)
+        encoded = name.encode() + b"\x00"
+        out += struct.pack(prefix + "I", len(encoded)) + encoded
+        _pad(out, 4)
+        out += struct.pack(prefix + "I", offset) + bytes([datatype])
+        _pad(out, 4)
+        out += struct.pack(prefix + "I", 1)
+    out += bytes([1 if big_endian else 0])
+    _pad(out, 4)
+    out += struct.pack(prefix + "III", point_step, n * point_step, n * point_step)
+    out += data.tobytes()
+    out += bytes([bool(np.isfinite(pts).all())])
+    return bytes(out)
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def rotation_matrix_from_quaternion(xyzw: ArrayLike) -> FloatArray:
+    """Rotation matrix of a quaternion (x, y, z, w), normalised first.
+
+    Parameters
+    ----------
+    xyzw : array_like, shape (4,)
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``R`` such that ``R @ v`` rotates ``v``.
+
+    Raises
+    ------
+    ConversionError
+        Wrong shape, non-finite values, or a (near) zero quaternion.
+    """
+    q = np.asarray(xyzw, dtype=np.float64)
+    if q.shape != (4,):
+        raise ConversionError(f"quaternion: expected shape (4,) as (x, y, z, w), got shape {q.shape}")
+    norm = float(np.linalg.norm(q))
+    if not math.isfinite(norm) or norm < 1e-12:
+        raise ConversionError(f"quaternion: expected a finite non-zero quaternion, got {q.tolist()}")
+    x, y, z, w = q / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quaternion_from_rotation_matrix(R: ArrayLike) -> FloatArray:
+    """Unit quaternion (x, y, z, w), w >= 0, of a proper rotation matrix, shape (3, 3) -> (4,)."""
+    mat = np.asarray(R, dtype=np.float64)
+    if mat.shape != (3, 3):
+        raise ConversionError(f"R: expected shape (3, 3), got shape {mat.shape}")
+    q: FloatArray = Rotation.from_matrix(mat).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def _unit(v: ArrayLike, name: str) -> FloatArray:
+    arr = np.asarray(v, dtype=np.float64)
+    if arr.shape != (3,):
+        raise ConversionError(f"{name}: expected shape (3,), got shape {arr.shape}")
+    norm = float(np.linalg.norm(arr))
+    if not math.isfinite(norm) or norm < 1e-12:
+        raise ConversionError(f"{name}: expected a finite non-zero vector, got {arr.tolist()}")
+    return arr / norm
+
+
+def quaternion_z_to_direction(direction: ArrayLike) -> FloatArray:
+    """The minimal rotation taking +z to ``direction``, as a quaternion (x, y, z, w).
+
+    Parameters
+    ----------
+    direction : array_like, shape (3,)
+        Non-zero; normalised here.
+
+    Returns
+    -------
+    ndarray, shape (4,)
+        Rotation about ``z x d`` by the angle between z and d. For d = -z,
+        where that axis is undefined, the half turn about x, (1, 0, 0, 0).
+        Deterministic and continuous except at d = -z.
+
+    Notes
+    -----
+    ``q ∝ (z × d, 1 + z·d) = (-d_y, d_x, 0, 1 + d_z)``; near d = -z, ``1 + d_z``
+    is computed as ``(d_x² + d_y²) / (1 - d_z)`` to avoid cancellation.
+    """
+    d = _unit(direction, "direction")
+    dx, dy, dz = d
+    w = 1.0 + dz if dz >= 0.0 else (dx * dx + dy * dy) / (1.0 - dz)
+    q = np.array([-dy, dx, 0.0, w])
+    norm = float(np.linalg.norm(q))
+    if norm < 1e-150:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    return q / norm
