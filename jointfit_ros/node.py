@@ -20,7 +20,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
@@ -38,21 +37,14 @@ from jointfit_core.estimator import JointOutput
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 
 from .conversions import (
-    ConversionError,
     axis_arrow_marker,
     axis_pose,
     covariance_ellipsoid_marker,
     diagnostic_status,
-    frame_from_points,
-    label_points,
-    label_problems,
-    parse_pointcloud2,
-    parse_pose_array,
-    parse_pose_stamped,
     pose_with_covariance,
-    rotation_matrix_from_quaternion,
     stamp_from_ns,
 )
+from .inputs import MessageRouter, Routed
 from .params import (
     JOINT_PARAMS,
     NODE_PARAMS,
@@ -129,20 +121,15 @@ class JointfitNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
         # Inputs.
-        self.counters = {"messages": 0, "malformed": 0, "label_problems": 0, "unassigned": 0}
+        self.router = MessageRouter(self.cfg, self.runners.values())
+        self.counters = self.router.counters
         self._warned: set[str] = set()
-        self._last_frame: np.ndarray | None = None
-        self._frame_id = ""
         self._last_outputs: dict[str, tuple[int, str, JointOutput]] = {}
-        marker_runners = [r for r in self.runners.values() if r.uses_marker_topic]
-        self._marker_runners = marker_runners
-        if marker_runners:
+        if self.router.marker_runners:
             msg_type = PoseArray if self.cfg.marker_type == "pose_array" else PointCloud2
             self.create_subscription(msg_type, self.cfg.marker_topic, self._on_markers, qos, raw=True)
-        for runner in self.runners.values():
-            for source, topic in ((0, runner.cfg.parent_pose_topic), (1, runner.cfg.child_pose_topic)):
-                if topic:
-                    self.create_subscription(PoseStamped, topic, self._pose_callback(runner, source), qos, raw=True)
+        for topic in self.router.pose_topics:
+            self.create_subscription(PoseStamped, topic, self._pose_callback(topic), qos, raw=True)
 
         # Timers and services.
         self._jf_timers: dict[str, Any] = {}
@@ -153,7 +140,7 @@ class JointfitNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f"estimating {', '.join(f'{j.name} ({j.type})' for j in self.cfg.joints)} from "
-            f"{self.cfg.marker_topic if marker_runners else 'pose topics'}"
+            f"{self.cfg.marker_topic if self.router.marker_runners else 'pose topics'}"
         )
 
     # ------------------------------------------------------------------ parameters
@@ -214,77 +201,30 @@ class JointfitNode(Node):
             self._warned.add(key)
             self.get_logger().warning(text + " (reported once; counted in /diagnostics)")
 
-    def _frame_from_message(self, raw: bytes) -> tuple[int, str, np.ndarray] | None:
-        cfg = self.cfg
-        n = len(cfg.marker_names)
-        try:
-            if cfg.marker_type == "pose_array":
-                msg = parse_pose_array(raw)
-            else:
-                msg = parse_pointcloud2(raw, label_field=cfg.label_field or None)
-            if msg.labels is not None:
-                problems = label_problems(msg.labels, n)
-                if problems.out_of_range or problems.duplicated:
-                    self.counters["label_problems"] += 1
-                frame = frame_from_points(msg.points, n, labels=msg.labels, zero_is_missing=cfg.zero_is_missing)
-            elif cfg.unlabelled and self._last_frame is not None:
-                frame = label_points(msg.points, self._last_frame, cfg.assignment_gate, zero_is_missing=cfg.zero_is_missing)
-                missing = np.isnan(frame[:, 0])
-                if missing.any():
-                    self.counters["unassigned"] += int(missing.sum())
-            else:
-                frame = frame_from_points(msg.points, n, zero_is_missing=cfg.zero_is_missing)
-        except ConversionError as exc:
-            self.counters["malformed"] += 1
-            self._warn_once("malformed", f"dropped a malformed message on {cfg.marker_topic}: {exc}")
-            return None
-        if cfg.unlabelled:
-            # The prediction for the next cloud: the latest position of every marker seen.
-            if self._last_frame is None:
-                if not np.isnan(frame).any():
-                    self._last_frame = frame.copy()
-            else:
-                seen = ~np.isnan(frame[:, 0])
-                self._last_frame[seen] = frame[seen]
-        return msg.stamp_ns, msg.frame_id, frame
+    def _report_problem(self) -> None:
+        problem = self.router.last_problem
+        if problem is not None:
+            self._warn_once(*problem)
+            self.router.last_problem = None
 
     def _on_markers(self, raw: bytes) -> None:
-        self.counters["messages"] += 1
-        got = self._frame_from_message(raw)
-        if got is None:
-            return
-        stamp_ns, frame_id, frame = got
-        self._frame_id = frame_id
-        for runner in self._marker_runners:
-            self._publish_world(runner, stamp_ns, frame_id, runner.markers_frame(stamp_ns, frame))
+        for routed in self.router.markers(raw):
+            self._publish_world(routed)
+        self._report_problem()
 
-    def _pose_callback(self, runner: JointRunner, source: int) -> Callable[[bytes], None]:
-        topic = runner.cfg.parent_pose_topic if source == 0 else runner.cfg.child_pose_topic
-
+    def _pose_callback(self, topic: str) -> Callable[[bytes], None]:
         def callback(raw: bytes) -> None:
-            self.counters["messages"] += 1
-            try:
-                msg = parse_pose_stamped(raw)
-                R = rotation_matrix_from_quaternion(msg.quaternion)
-            except ConversionError as exc:
-                self.counters["malformed"] += 1
-                self._warn_once(f"malformed:{topic}", f"dropped a malformed message on {topic}: {exc}")
-                return
-            if not np.isfinite(msg.position).all():
-                self.counters["malformed"] += 1
-                self._warn_once(f"nan:{topic}", f"dropped a pose with NaN position on {topic}")
-                return
-            self._frame_id = self._frame_id or msg.frame_id
-            self._publish_world(runner, msg.stamp_ns, msg.frame_id, runner.pose(source, msg.stamp_ns, R, msg.position))
+            for routed in self.router.pose(topic, raw):
+                self._publish_world(routed)
+            self._report_problem()
 
         return callback
 
     # ------------------------------------------------------------------ outputs
 
-    def _publish_world(self, runner: JointRunner, stamp_ns: int, frame_id: str, out: JointOutput | None) -> None:
-        if out is None:
-            return
-        frame = self.cfg.world_frame or frame_id
+    def _publish_world(self, routed: Routed) -> None:
+        runner, stamp_ns, out = routed.runner, routed.stamp_ns, routed.output
+        frame = self.cfg.world_frame or routed.frame_id
         if out.direction is None:
             msg = pose_with_covariance(stamp_ns, frame, out.position, out.cov)
         else:
@@ -345,7 +285,7 @@ class JointfitNode(Node):
             "malformed messages": self.counters["malformed"],
             "messages with label problems": self.counters["label_problems"],
             "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
-            "input frame_id": self._frame_id,
+            "input frame_id": self.router.frame_id,
         }
         level = WARN if self.counters["malformed"] or self.counters["label_problems"] else OK
         message = "receiving" if self.counters["messages"] else f"waiting for {self.cfg.marker_topic}"
@@ -363,7 +303,7 @@ class JointfitNode(Node):
         for runner in self.runners.values():
             runner.reset()
         self._last_outputs.clear()
-        self._last_frame = None
+        self.router.reset()
         response.success = True
         response.message = f"reset {', '.join(self.runners)}"
         self.get_logger().info(response.message)
