@@ -80,7 +80,15 @@ def test_ros_wheels_import() -> None:
 
 
 #: jointfit_ros modules the offline tools use: they must work without ROS too.
-ROS_FREE = ["jointfit_ros.raw", "jointfit_ros.params", "jointfit_ros.sync", "jointfit_ros.runner", "jointfit_ros.inputs"]
+ROS_FREE = [
+    "jointfit_ros.raw",
+    "jointfit_ros.params",
+    "jointfit_ros.sync",
+    "jointfit_ros.runner",
+    "jointfit_ros.inputs",
+    "jointfit_ros.bag",
+    "jointfit_ros.replay",
+]
 
 
 def test_offline_parts_of_jointfit_ros_never_import_ros() -> None:
