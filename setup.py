@@ -34,6 +34,7 @@ setup(
         "console_scripts": [
             "jointfit_node = jointfit_ros.node:main",
             "jointfit_fake_mocap = jointfit_ros.fake_mocap:main",
+            "jointfit_replay = jointfit_ros.replay:main",
         ],
     },
 )
