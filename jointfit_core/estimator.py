@@ -622,16 +622,9 @@ class OnlineJoint:
             return self._after_fill(stamp)
         yp = check_frame(parent, None if self.n_markers is None else self.n_markers[0], name="parent")
         yc = check_frame(child, None if self.n_markers is None else self.n_markers[1], name="child")
-        st = None if stamp is None else float(stamp)
-        if st is not None and not np.isfinite(st):
-            raise InputError(f"stamp: expected a finite number of seconds, got {stamp!r}")
-        if self.spec.needs_stamps and st is None:
-            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
-        if st is not None and self._last_stamp is not None and st <= self._last_stamp:
-            self._drop("stamp_not_increasing")
+        ok, st = self._accept_stamp(stamp)
+        if not ok:
             return None
-        if st is not None:
-            self._last_stamp = st
         if self._parent is None or self._child is None:
             if yp.shape[0] < MIN_POSE_MARKERS or yc.shape[0] < MIN_POSE_MARKERS:
                 raise InputError(
@@ -679,7 +672,8 @@ class OnlineJoint:
         self._missing = np.asarray(~finite.all(axis=2), dtype=bool)
         return True
 
-    def _after_fill(self, stamp: float | None) -> JointOutput | None:
+    def _accept_stamp(self, stamp: float | None) -> tuple[bool, float | None]:
+        """Check a frame's stamp; (False, _) when it does not increase (dropped and counted)."""
         st = None if stamp is None else float(stamp)
         if st is not None and not np.isfinite(st):
             raise InputError(f"stamp: expected a finite number of seconds, got {stamp!r}")
@@ -687,9 +681,15 @@ class OnlineJoint:
             raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
         if st is not None and self._last_stamp is not None and st <= self._last_stamp:
             self._drop("stamp_not_increasing")
-            return None
+            return False, st
         if st is not None:
             self._last_stamp = st
+        return True, st
+
+    def _after_fill(self, stamp: float | None) -> JointOutput | None:
+        ok, st = self._accept_stamp(stamp)
+        if not ok:
+            return None
         self.n_frames_seen += 1
         return self._add(self._missing, st)
 

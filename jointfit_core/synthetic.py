@@ -20,6 +20,7 @@ __all__ = [
     "random_walk_rotations",
     "TwoSegmentMotion",
     "two_segment_motion",
+    "random_cluster",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -202,7 +203,7 @@ class TwoSegmentMotion:
         return out
 
 
-def _cluster(rng: np.random.Generator, n_markers: int) -> FloatArray:
+def random_cluster(rng: np.random.Generator, n_markers: int) -> FloatArray:
     """A marker cluster 100-200 mm wide, centred at its centroid, randomly oriented."""
     ang = np.linspace(0.0, 2.0 * np.pi, n_markers, endpoint=False) + rng.uniform(-0.3, 0.3, n_markers)
     r = rng.uniform(50.0, 100.0, n_markers)
@@ -239,8 +240,8 @@ def two_segment_motion(
     """
     if kind not in ("ball", "hinge", "none"):
         raise ValueError(f"kind: expected 'ball', 'hinge' or 'none', got {kind!r}")
-    xp = _cluster(rng, n_markers[0])
-    xc = _cluster(rng, n_markers[1])
+    xp = random_cluster(rng, n_markers[0])
+    xc = random_cluster(rng, n_markers[1])
     c_p = np.array([0.0, 0.0, -500.0]) + rng.normal(0.0, 30.0, 3)
     c_c = np.array([0.0, 0.0, 500.0]) + rng.normal(0.0, 30.0, 3)
     phase = rng.uniform(0.0, 2.0 * np.pi, 9)

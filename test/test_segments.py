@@ -25,6 +25,7 @@ from jointfit_core.segments import (
     pose_sums_from_relative,
     relative_poses,
 )
+from jointfit_core.synthetic import random_cluster
 
 FloatArray = NDArray[np.float64]
 
@@ -44,16 +45,6 @@ class Rig:
     d_parent: FloatArray
 
 
-def _cluster(rng: np.random.Generator, n_markers: int) -> FloatArray:
-    """A marker cluster 100-200 mm wide, centred, randomly oriented."""
-    ang = np.linspace(0.0, 2.0 * np.pi, n_markers, endpoint=False) + rng.uniform(-0.3, 0.3, n_markers)
-    r = rng.uniform(50.0, 100.0, n_markers)
-    x = np.stack([r * np.cos(ang), r * np.sin(ang), rng.normal(0.0, 15.0, n_markers)], axis=1)
-    x = x @ Rotation.random(random_state=rng).as_matrix().T
-    out: FloatArray = x - x.mean(axis=0)
-    return out
-
-
 def _rig(
     rng: np.random.Generator,
     n_frames: int = 1200,
@@ -63,8 +54,8 @@ def _rig(
     n_markers: tuple[int, int] = (3, 3),
 ) -> Rig:
     """Stoddart-like rig; ``motion`` is "ball" (three axes), "hinge" (about x) or "none"."""
-    xp = _cluster(rng, n_markers[0])
-    xc = _cluster(rng, n_markers[1])
+    xp = random_cluster(rng, n_markers[0])
+    xc = random_cluster(rng, n_markers[1])
     c_p = np.array([0.0, 0.0, -500.0]) + rng.normal(0.0, 30.0, 3)
     c_c = np.array([0.0, 0.0, 500.0]) + rng.normal(0.0, 30.0, 3)
     time = np.arange(n_frames) / 60.0
