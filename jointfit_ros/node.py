@@ -39,9 +39,11 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 from .conversions import (
     axis_arrow_marker,
     axis_pose,
+    axis_pose_bytes,
     covariance_ellipsoid_marker,
     diagnostic_status,
     pose_with_covariance,
+    pose_with_covariance_bytes,
     stamp_from_ns,
 )
 from .inputs import MessageRouter, Routed
@@ -225,12 +227,13 @@ class JointfitNode(Node):
     def _publish_world(self, routed: Routed) -> None:
         runner, stamp_ns, out = routed.runner, routed.stamp_ns, routed.output
         frame = self.cfg.world_frame or routed.frame_id
+        # CDR bytes, not message objects: building those costs more than the estimator (bench/node_latency.py).
         if out.direction is None:
-            msg = pose_with_covariance(stamp_ns, frame, out.position, out.cov)
+            raw = pose_with_covariance_bytes(stamp_ns, frame, out.position, out.cov)
         else:
             assert out.cov_direction is not None
-            msg = axis_pose(stamp_ns, frame, out.position, out.direction, out.cov, out.cov_direction)
-        self._world_pubs[runner.cfg.name].publish(msg)
+            raw = axis_pose_bytes(stamp_ns, frame, out.position, out.direction, out.cov, out.cov_direction)
+        self._world_pubs[runner.cfg.name].publish(raw)
         self._last_outputs[runner.cfg.name] = (stamp_ns, frame, out)
 
     def _now_ns(self) -> int:

@@ -580,3 +580,36 @@ def test_arrow_sphere_and_diagnostics() -> None:
     assert diagnostic_status("x", b"\x02", "", {}).level == b"\x02"
     with pytest.raises(ConversionError, match="level"):
         diagnostic_status("x", 4, "", {})
+
+
+def test_output_bytes_match_rclpy_serialization_of_the_message_objects() -> None:
+    """The node publishes its per-frame outputs as bytes: they must equal the message objects' content."""
+    from rclpy.serialization import deserialize_message
+
+    from jointfit_ros.conversions import (
+        axis_pose,
+        axis_pose_bytes,
+        pose_with_covariance,
+        pose_with_covariance_bytes,
+    )
+
+    rng = np.random.default_rng(3)
+    for frame_id in ("", "w", "world", "mocap_origin", "wörld"):
+        a = rng.normal(size=(3, 3))
+        cov = a @ a.T
+        stamp = int(rng.integers(-(10**12), 10**18))
+        pos = rng.normal(size=3)
+        direction = rng.normal(size=3)
+        pairs = [
+            (pose_with_covariance(stamp, frame_id, pos, cov), pose_with_covariance_bytes(stamp, frame_id, pos, cov)),
+            (
+                axis_pose(stamp, frame_id, pos, direction, cov, cov * 1e-3),
+                axis_pose_bytes(stamp, frame_id, pos, direction, cov, cov * 1e-3),
+            ),
+        ]
+        for msg, raw in pairs:
+            back = deserialize_message(raw, PoseWithCovarianceStamped)
+            assert back.header.frame_id == msg.header.frame_id
+            assert (back.header.stamp.sec, back.header.stamp.nanosec) == (msg.header.stamp.sec, msg.header.stamp.nanosec)
+            assert back.pose.pose == msg.pose.pose
+            np.testing.assert_array_equal(np.array(back.pose.covariance), np.array(msg.pose.covariance))
