@@ -10,7 +10,7 @@ return for the frames of the window.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -271,6 +271,32 @@ class _OnlineMoments:
             "n_markers": self.n_markers,
         }
 
+    #: The fit dataclass a calibration holds, and the constructor keywords saved by :meth:`_settings`.
+    _fit_type: Any = None
+    _keywords: tuple[str, ...] = ("window_s", "half_life", "half_life_s", "noise_std", "n_markers")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings and the frozen (else current) fit as plain YAML-able types."""
+        return {**self._settings(), "fit": fit_to_dict(self.estimate())}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Self:
+        """A frozen estimator holding a saved fit (see :meth:`to_dict`).
+
+        Raises
+        ------
+        InputError
+            Another kind of calibration, or missing or malformed fields.
+        """
+        _check_kind(data, cls.kind)
+        est = cls(data.get("window"), **{k: data.get(k) for k in cls._keywords})
+        est._frozen = fit_from_dict(cls._fit_type, data["fit"])
+        est._check_fit(est._frozen)
+        return est
+
+    def _check_fit(self, fit: Any) -> None:
+        """Shape checks of a loaded fit beyond its fields (none by default)."""
+
 
 def _check_kind(data: dict[str, Any], kind: str) -> None:
     if not isinstance(data, dict) or data.get("kind") != kind or not isinstance(data.get("fit"), dict):
@@ -316,6 +342,7 @@ class OnlineCentre(_OnlineMoments):
     """
 
     kind = "centre"
+    _fit_type = CentreFit
 
     def __init__(
         self,
@@ -344,27 +371,9 @@ class OnlineCentre(_OnlineMoments):
         out: CentreFit = super().estimate()
         return out
 
-    def to_dict(self) -> dict[str, Any]:
-        """The settings and the frozen (else current) fit as plain YAML-able types."""
-        fit = self._frozen if self._frozen is not None else self._solve()
-        return {**self._settings(), "fit": fit_to_dict(fit)}
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> OnlineCentre:
-        """A frozen estimator holding a saved fit (see :meth:`to_dict`)."""
-        _check_kind(data, cls.kind)
-        est = cls(
-            data.get("window"),
-            window_s=data.get("window_s"),
-            half_life=data.get("half_life"),
-            half_life_s=data.get("half_life_s"),
-            noise_std=data.get("noise_std"),
-            n_markers=data.get("n_markers"),
-        )
-        est._frozen = fit_from_dict(CentreFit, data["fit"])
-        if est._frozen.centre.shape != (3,) or est._frozen.cov.shape != (3, 3):
+    def _check_fit(self, fit: Any) -> None:
+        if fit.centre.shape != (3,) or fit.cov.shape != (3, 3):
             raise InputError("calibration: expected centre of shape (3,) and cov of shape (3, 3)")
-        return est
 
 
 class OnlineAxis(_OnlineMoments):
@@ -385,6 +394,8 @@ class OnlineAxis(_OnlineMoments):
     """
 
     kind = "axis"
+    _fit_type = AxisFit
+    _keywords = (*_OnlineMoments._keywords, "reference_direction")
 
     def __init__(
         self,
@@ -414,24 +425,6 @@ class OnlineAxis(_OnlineMoments):
         out: AxisFit = super().estimate()
         return out
 
-    def to_dict(self) -> dict[str, Any]:
-        """The settings and the frozen (else current) fit as plain YAML-able types."""
-        fit = self._frozen if self._frozen is not None else self._solve()
+    def _settings(self) -> dict[str, Any]:
         ref = None if self.reference_direction is None else self.reference_direction.tolist()
-        return {**self._settings(), "reference_direction": ref, "fit": fit_to_dict(fit)}
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> OnlineAxis:
-        """A frozen estimator holding a saved fit (see :meth:`to_dict`)."""
-        _check_kind(data, cls.kind)
-        est = cls(
-            data.get("window"),
-            window_s=data.get("window_s"),
-            half_life=data.get("half_life"),
-            half_life_s=data.get("half_life_s"),
-            noise_std=data.get("noise_std"),
-            n_markers=data.get("n_markers"),
-            reference_direction=data.get("reference_direction"),
-        )
-        est._frozen = fit_from_dict(AxisFit, data["fit"])
-        return est
+        return {**super()._settings(), "reference_direction": ref}
