@@ -22,8 +22,9 @@ from .segments import (
     _axis_verdict,
     _check_cov6,
     _FrozenArrays,
-    _lever_jacobian,
     _motion,
+    _sums_meat,
+    _sums_rms,
 )
 
 __all__ = ["PoseSumsAxis", "axis_from_pose_sums"]
@@ -199,15 +200,7 @@ def axis_from_pose_sums(
     c_p, c_c = a[:3], a[3:]
 
     # Sandwich covariance of the point pair (as centre_from_pose_sums, with the pseudo-inverse).
-    Jp, Jc = _lever_jacobian(c_p), _lever_jacobian(c_c)
-    W_p = Jp @ Wp6 @ Jp.T
-    W_c = Jc @ Wc6 @ Jc.T
-    B = np.empty((6, 6))
-    B[:3, :3] = n * W_p + _kq(K, W_c)
-    B[:3, 3:] = -(W_p @ S + S @ W_c)
-    B[3:, :3] = B[:3, 3:].T
-    B[3:, 3:] = _kqt(K, W_p) + n * W_c
-    cov_a = H_pinv @ B @ H_pinv
+    cov_a = H_pinv @ _sums_meat(sums, c_p, c_c, Wp6, Wc6) @ H_pinv
 
     cov_dir = _direction_covariance(U, s, V, n, K, Wp6[:3, :3], Wc6[:3, :3])
     n_p, n_c = flip * n_p, flip * n_c
@@ -221,13 +214,6 @@ def axis_from_pose_sums(
     cov_pt_p = P_p @ cov_a[:3, :3] @ P_p + Jn_p @ cov_dir_p @ Jn_p.T
     cov_pt_c = P_c @ cov_a[3:, 3:] @ P_c + Jn_c @ cov_dir_c @ Jn_c.T
 
-    ss = (
-        n * (c_p @ c_p + c_c @ c_c)
-        + sums.sum_tt
-        - 2.0 * c_p @ S @ c_c
-        - 2.0 * c_p @ sums.sum_t
-        + 2.0 * c_c @ sums.sum_qt_t
-    )
     mo = _motion(S, n, Wp6[:3, :3], _kq(K, Wc6[:3, :3]) / n)
     identifiable, reason = _axis_verdict(
         mo, cov_dir_p, cov_dir_c, cov_pt_p, cov_pt_c, point_p, point_c, length_scale
@@ -245,7 +231,7 @@ def axis_from_pose_sums(
         cov_direction_child=sym(cov_dir_c),
         cov_point_parent=sym(cov_pt_p),
         cov_point_child=sym(cov_pt_c),
-        rms=float(np.sqrt(max(float(ss), 0.0) / n)),
+        rms=_sums_rms(sums, c_p, c_c),
         n_frames=round(n),
         identifiable=identifiable,
         reason=reason,

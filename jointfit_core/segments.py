@@ -422,6 +422,40 @@ def _normal_matrix(S: FloatArray, n: float) -> FloatArray:
     return H
 
 
+def _sums_meat(sums: PoseSums, c_p: FloatArray, c_c: FloatArray, Wp6: FloatArray, Wc6: FloatArray) -> FloatArray:
+    """``sum_t M_t^T W_t M_t`` (6, 6) of the constraint ``c_p - Q_t c_c - t_t`` from the sums.
+
+    ``W_t = W_p + Q_t W_c Q_t^T`` with the local pose covariances carried to the levers ``c_p``, ``c_c``
+    (the sandwich's middle; see :func:`centre_from_pose_sums`).
+    """
+    n = float(sums.n)
+    S = np.asarray(sums.S)
+    K = np.asarray(sums.K)
+    Jp = _lever_jacobian(c_p)
+    Jc = _lever_jacobian(c_c)
+    W_p = Jp @ Wp6 @ Jp.T
+    W_c = Jc @ Wc6 @ Jc.T
+    B = np.empty((6, 6))
+    B[:3, :3] = n * W_p + (K @ W_c.ravel()).reshape(3, 3)
+    B[:3, 3:] = -(W_p @ S + S @ W_c)
+    B[3:, :3] = B[:3, 3:].T
+    B[3:, 3:] = (K.T @ W_p.ravel()).reshape(3, 3) + n * W_c
+    return B
+
+
+def _sums_rms(sums: PoseSums, c_p: FloatArray, c_c: FloatArray) -> float:
+    """Rms over the summed frames of ``|c_p - Q_t c_c - t_t|``, from the sums."""
+    n = float(sums.n)
+    ss = (
+        n * (c_p @ c_p + c_c @ c_c)
+        + sums.sum_tt
+        - 2.0 * c_p @ np.asarray(sums.S) @ c_c
+        - 2.0 * c_p @ sums.sum_t
+        + 2.0 * c_c @ sums.sum_qt_t
+    )
+    return float(np.sqrt(max(float(ss), 0.0) / n))
+
+
 def centre_from_pose_sums(
     sums: PoseSums,
     W_parent_local: ArrayLike,
@@ -524,26 +558,10 @@ def centre_from_pose_sums(
         a = a + H_inv @ expected
     c_p, c_c = a[:3], a[3:]
 
-    Jp = _lever_jacobian(c_p)
-    Jc = _lever_jacobian(c_c)
-    W_p = Jp @ Wp6 @ Jp.T
-    W_c = Jc @ Wc6 @ Jc.T
-    B = np.empty((6, 6))
-    B[:3, :3] = n * W_p + (K @ W_c.ravel()).reshape(3, 3)
-    B[:3, 3:] = -(W_p @ S + S @ W_c)
-    B[3:, :3] = B[:3, 3:].T
-    B[3:, 3:] = (K.T @ W_p.ravel()).reshape(3, 3) + n * W_c
-    cov = H_inv @ B @ H_inv
+    cov = H_inv @ _sums_meat(sums, c_p, c_c, Wp6, Wc6) @ H_inv
     cov = 0.5 * (cov + cov.T)
 
-    ss = (
-        n * (c_p @ c_p + c_c @ c_c)
-        + sums.sum_tt
-        - 2.0 * c_p @ S @ c_c
-        - 2.0 * c_p @ sums.sum_t
-        + 2.0 * c_c @ sums.sum_qt_t
-    )
-    rms = float(np.sqrt(max(float(ss), 0.0) / n))
+    rms = _sums_rms(sums, c_p, c_c)
     identifiable, reason = _centre_verdict(mo, cov[:3, :3], cov[3:, 3:], c_p, c_c, length_scale)
     return PoseSumsCentre(
         centre_parent=c_p,
