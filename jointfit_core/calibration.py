@@ -11,7 +11,6 @@ never leaves a half-written or lost calibration.
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import fields
 from pathlib import Path
 from typing import Any, TypeVar
@@ -19,6 +18,7 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from .atomic import write_atomic
 from .errors import InputError, MissingDependencyError
 
 __all__ = ["fit_to_dict", "fit_from_dict", "save_calibration", "load_calibration"]
@@ -97,8 +97,9 @@ def save_calibration(path: str | os.PathLike[str], data: dict[str, Any]) -> Path
     The text goes to a temporary file in the same directory, is flushed to
     disk, and then replaces ``path`` in one step (``os.replace``), so that a
     reader sees the old or the new calibration, never a partial one, and a
-    crash while writing loses nothing. A previous file is kept as
-    ``<path>.bak``.
+    crash while writing loses nothing (:func:`~jointfit_core.atomic.write_atomic`).
+    A previous file is kept as ``<path>.bak`` (a hard link made before the
+    rename: ``path`` itself never disappears).
 
     Parameters
     ----------
@@ -112,23 +113,8 @@ def save_calibration(path: str | os.PathLike[str], data: dict[str, Any]) -> Path
         The written path.
     """
     yaml = _yaml()
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        if target.exists():
-            backup = target.with_name(target.name + ".bak")
-            os.replace(target, backup)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target
+    return write_atomic(path, text, keep_backup=True)
 
 
 def load_calibration(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -1,0 +1,95 @@
+"""Files written so that a reader (or a crash) never sees half of one.
+
+:func:`write_atomic` writes to a temporary file in the target's directory,
+flushes it to disk, and renames it over the target in one step
+(``os.replace``, atomic on POSIX and Windows for files on one file system). At
+every instant the target is the complete old or the complete new file, also
+when the process is killed (SIGKILL) or the machine stops in between. The
+optional backup is made with a hard link (a copy where links are not
+supported) before the rename, so the target never disappears.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+__all__ = ["write_atomic"]
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (no-op where directories cannot be opened)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _temporary_sibling(target: Path, suffix: str) -> Path:
+    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
+    os.close(fd)
+    return Path(name)
+
+
+def write_atomic(path: str | os.PathLike[str], content: bytes | str, *, keep_backup: bool = False) -> Path:
+    """Replace a file's content atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target; its directory is created when missing.
+    content : bytes or str
+        The new content (str is written as UTF-8).
+    keep_backup : bool
+        Keep the previous file, if any, as ``<path>.bak`` (replacing an older backup).
+
+    Returns
+    -------
+    Path
+        The written path.
+
+    Raises
+    ------
+    OSError
+        The directory or the file cannot be written; the target is then
+        unchanged and no temporary file is left behind.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    data = content.encode("utf-8") if isinstance(content, str) else bytes(content)
+    tmp = _temporary_sibling(target, ".tmp")
+    try:
+        # mkstemp makes the file 0600: give it the old file's mode, or the usual umask-based one.
+        try:
+            mode = target.stat().st_mode & 0o7777
+        except OSError:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        os.chmod(tmp, mode)
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if keep_backup and target.exists():
+            bak_tmp = _temporary_sibling(target, ".bak.tmp")
+            try:
+                bak_tmp.unlink()
+                try:
+                    os.link(target, bak_tmp)
+                except OSError:
+                    shutil.copy2(target, bak_tmp)
+                os.replace(bak_tmp, target.with_name(target.name + ".bak"))
+            finally:
+                bak_tmp.unlink(missing_ok=True)
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(target.parent)
+    return target
