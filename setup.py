@@ -35,6 +35,7 @@ setup(
             "jointfit_node = jointfit_ros.node:main",
             "jointfit_fake_mocap = jointfit_ros.fake_mocap:main",
             "jointfit_replay = jointfit_ros.replay:main",
+            "jointfit = jointfit_ros.cli:main",
         ],
     },
 )

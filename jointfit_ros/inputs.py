@@ -66,6 +66,9 @@ class MessageRouter:
         ``(key, text)`` of the latest dropped message, for a one-time log line.
     frame_id : str
         frame_id of the latest message.
+    recorded : list of (int, ndarray) or None
+        When set to a list (the offline fit does, for its report), every
+        parsed marker frame is appended as ``(stamp_ns, frame (P, 3))``.
     """
 
     def __init__(self, cfg: NodeConfig, runners: Iterable[JointRunner]) -> None:
@@ -81,6 +84,7 @@ class MessageRouter:
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
         self._last_frame: FloatArray | None = None
+        self.recorded: list[tuple[int, FloatArray]] | None = None
 
     def reset(self) -> None:
         """Forget the unlabelled-cloud prediction (after a reset of the joints)."""
@@ -132,6 +136,8 @@ class MessageRouter:
             return []
         stamp_ns, frame_id, frame = got
         self.frame_id = frame_id
+        if self.recorded is not None:
+            self.recorded.append((stamp_ns, frame))
         out = []
         for runner in self.marker_runners:
             result = runner.markers_frame(stamp_ns, frame)

@@ -14,9 +14,11 @@ Joint parameters live under the joint's name: ``hip.type``, ``hip.parent_markers
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from jointfit_core.errors import JointfitError
@@ -33,6 +35,7 @@ __all__ = [
     "joint_param_names",
     "RUNTIME_PARAMS",
     "parameters_markdown",
+    "params_from_file",
 ]
 
 
@@ -490,3 +493,66 @@ def parameters_markdown() -> str:
         choices = f" One of: {', '.join(spec.choices)}." if spec.choices else ""
         lines.append(f"| `<joint>.{spec.name}` | {spec.kind} | {_default_text(spec)} | {spec.description}{choices} |")
     return "\n".join(lines) + "\n"
+
+
+def _flatten(values: Mapping[str, Any], prefix: str, out: dict[str, Any]) -> None:
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            _flatten(value, name + ".", out)
+        else:
+            out[name] = value
+
+
+def params_from_file(path: str | os.PathLike[str], node_name: str = "jointfit") -> dict[str, Any]:
+    """Read a ROS 2 parameter file (``--params-file``) into flat ``{name: value}`` for :func:`node_config`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        YAML file of the form ``<node>: {ros__parameters: {...}}``; nested
+        mappings become dotted names (``hip: {type: ball}`` is ``hip.type``).
+    node_name : str
+        The entry to read. ``/**`` (every node) entries are read first and the
+        node's own entry overrides them, as ``ros2 run`` does; a file with a
+        single entry is read whatever its name.
+
+    Returns
+    -------
+    dict of str to object
+
+    Raises
+    ------
+    ConfigError
+        The file is missing or unreadable, is not YAML, or holds no
+        ``ros__parameters`` for the node (the message lists the entries found).
+    """
+    import yaml  # a runtime dependency (PyYAML), imported late like the other readers
+
+    file = Path(path)
+    try:
+        doc = yaml.safe_load(file.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{file}: no such parameter file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{file}: cannot read the parameter file ({exc})") from None
+    except yaml.YAMLError as exc:
+        where = getattr(exc, "problem_mark", None)
+        line = f" at line {where.line + 1}" if where is not None else ""
+        raise ConfigError(f"{file}: not valid YAML{line}") from None
+    if not isinstance(doc, Mapping):
+        raise ConfigError(f"{file}: expected a mapping '<node name>: {{ros__parameters: ...}}', got {type(doc).__name__}")
+    entries = {str(k).lstrip("/"): v for k, v in doc.items()}
+    chosen = [k for k in ("**", node_name.lstrip("/")) if k in entries]
+    if not chosen and len(entries) == 1:
+        chosen = list(entries)
+    if not chosen:
+        raise ConfigError(f"{file}: no entry for node {node_name!r}; entries: {sorted(entries)}")
+    out: dict[str, Any] = {}
+    for key in chosen:
+        entry = entries[key]
+        params = entry.get("ros__parameters") if isinstance(entry, Mapping) else None
+        if not isinstance(params, Mapping):
+            raise ConfigError(f"{file}: entry {key!r} has no 'ros__parameters' mapping")
+        _flatten(params, "", out)
+    return out

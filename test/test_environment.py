@@ -88,6 +88,9 @@ ROS_FREE = [
     "jointfit_ros.inputs",
     "jointfit_ros.bag",
     "jointfit_ros.replay",
+    "jointfit_ros.offline",
+    "jointfit_ros.report",
+    "jointfit_ros.cli",
 ]
 
 

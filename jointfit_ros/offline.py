@@ -1,0 +1,343 @@
+"""The node's estimators over a whole recording: what ``jointfit fit`` computes.
+
+ROS-free. :func:`run_fit` reads a rosbag2 bag (the node's marker and pose
+topics, as raw CDR), a C3D or a TRC file, and feeds every frame, in order, to
+one :class:`~jointfit_ros.runner.JointRunner` per configured joint, through
+the same :class:`~jointfit_ros.inputs.MessageRouter` the node uses for bag
+messages. With ``whole_recording=True`` (the default of ``jointfit fit``) every
+joint's window is made longer than the recording, so the final estimate is
+the batch estimate of all of it; a node whose window covers the recording
+ends with the same numbers.
+
+Along the way it keeps what the report shows: the estimate and its
+covariance at evenly spaced checkpoints (the convergence curve), every
+per-frame output's constraint residual, and (``keep_frames``) the parsed
+marker frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jointfit_core.errors import InputError
+from jointfit_core.hinge_from_sums import PoseSumsAxis
+from jointfit_core.io import MarkerData, read_c3d, read_trc
+from jointfit_core.segments import PoseSumsCentre
+
+from .bag import iter_bag_messages, select_topics
+from .inputs import MessageRouter
+from .params import ConfigError, NodeConfig
+from .runner import JointRunner
+
+__all__ = ["Checkpoint", "JointTrace", "FitRun", "input_kind", "run_fit"]
+
+FloatArray = NDArray[np.float64]
+
+#: bag message type of each ``marker_type``.
+_MARKER_MSGTYPE = {"pose_array": "geometry_msgs/msg/PoseArray", "pointcloud2": "sensor_msgs/msg/PointCloud2"}
+_POSE_MSGTYPE = "geometry_msgs/msg/PoseStamped"
+
+ProgressFn = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A joint's estimate part-way through the recording (parent frame).
+
+    Attributes
+    ----------
+    frames : int
+        Frames given to the joint's estimator so far.
+    position : ndarray, shape (3,)
+        Ball: the centre; hinge: the axis point nearest the parent origin.
+        Parent segment frame, input units.
+    cov : ndarray, shape (3, 3)
+        Its covariance, input units squared.
+    direction : ndarray, shape (3,) or None
+        Hinge: unit axis direction (parent frame).
+    cov_direction : ndarray, shape (3, 3) or None
+        Hinge: its covariance (rank 2).
+    rms : float
+        Rms constraint residual of the window, input units.
+    identifiable : bool
+    """
+
+    frames: int
+    position: FloatArray
+    cov: FloatArray
+    direction: FloatArray | None
+    cov_direction: FloatArray | None
+    rms: float
+    identifiable: bool
+
+
+def checkpoint_of(frames: int, sol: PoseSumsCentre | PoseSumsAxis) -> Checkpoint:
+    """The :class:`Checkpoint` of an estimate."""
+    if isinstance(sol, PoseSumsCentre):
+        return Checkpoint(frames, sol.centre_parent, sol.cov_parent, None, None, sol.rms, sol.identifiable)
+    return Checkpoint(
+        frames,
+        sol.point_parent,
+        sol.cov_point_parent,
+        sol.direction_parent,
+        sol.cov_direction_parent,
+        sol.rms,
+        sol.identifiable,
+    )
+
+
+@dataclass
+class JointTrace:
+    """One joint's run: its runner (final estimator, counters) and what the report plots.
+
+    Attributes
+    ----------
+    runner : JointRunner
+    checkpoints : list of Checkpoint
+    output_stamps : list of float
+        Stamp of every per-frame world output, s.
+    residuals : list of float
+        Its constraint residual (input units; NaN when the child was not posed).
+    final : PoseSumsCentre or PoseSumsAxis or None
+        The estimate from the whole window at the end of the recording; None
+        when it could not be made (``runner.last_error`` says why).
+    """
+
+    runner: JointRunner
+    final: PoseSumsCentre | PoseSumsAxis | None = None
+    checkpoints: list[Checkpoint] = field(default_factory=list)
+    output_stamps: list[float] = field(default_factory=list)
+    residuals: list[float] = field(default_factory=list)
+
+
+@dataclass
+class FitRun:
+    """Everything :func:`run_fit` produced.
+
+    Attributes
+    ----------
+    path : Path
+    kind : str
+        ``"bag"``, ``"c3d"`` or ``"trc"``.
+    cfg : NodeConfig
+        The configuration as run (windows widened with ``whole_recording``,
+        calibration files not loaded).
+    traces : list of JointTrace
+        One per joint, in the configuration's order.
+    n_inputs : int
+        Messages (bag) or frames (C3D/TRC) read.
+    units : str
+        The file's length unit where it declares one (C3D, TRC), else ``""``.
+    rate : float
+        Frame rate the file declares (C3D, TRC), else 0.
+    router : MessageRouter or None
+        Bag input: the router, with its counters.
+    stamps : ndarray, shape (N,)
+        Stamp of every marker frame kept, s (``keep_frames``).
+    frames : ndarray, shape (N, P, 3) or None
+        The marker frames in ``marker_names`` order (``keep_frames`` and marker inputs).
+    """
+
+    path: Path
+    kind: str
+    cfg: NodeConfig
+    traces: list[JointTrace]
+    n_inputs: int = 0
+    units: str = ""
+    rate: float = 0.0
+    router: MessageRouter | None = None
+    stamps: FloatArray = field(default_factory=lambda: np.zeros(0))
+    frames: FloatArray | None = None
+
+
+def input_kind(path: str | os.PathLike[str]) -> str:
+    """``"c3d"``, ``"trc"`` or ``"bag"`` from a path (checked to exist).
+
+    Raises
+    ------
+    InputError
+        The path does not exist or is none of these.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: no such file or directory")
+    suffix = p.suffix.lower()
+    if suffix in (".c3d", ".trc"):
+        return suffix[1:]
+    if p.is_dir() or suffix in (".db3", ".mcap") or p.name == "metadata.yaml":
+        return "bag"
+    raise InputError(f"{p}: expected a rosbag2 bag (a directory, .db3 or .mcap), a .c3d or a .trc file")
+
+
+def _offline_config(cfg: NodeConfig, window: int | None) -> NodeConfig:
+    """Calibration files never loaded (the fit estimates from the recording); windows widened."""
+    joints = []
+    for j in cfg.joints:
+        j = dataclasses.replace(j, calibration_file="")
+        if window is not None:
+            j = dataclasses.replace(j, window=window, window_s=0.0, half_life_s=0.0)
+        joints.append(j)
+    return dataclasses.replace(cfg, joints=tuple(joints))
+
+
+def _read_markers(path: Path, kind: str, cfg: NodeConfig) -> MarkerData:
+    if pose_joints := [j.name for j in cfg.joints if j.parent_pose_topic or j.child_pose_topic]:
+        raise ConfigError(
+            f"joints {pose_joints} read pose topics; a {kind.upper()} file holds markers only "
+            "(use a bag, or give these joints parent_markers and child_markers)"
+        )
+    return read_c3d(path) if kind == "c3d" else read_trc(path)
+
+
+def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
+    """The bag topics the configuration reads (checked for presence and type) and their message count."""
+    wanted: dict[str, str] = {}
+    if any(j.parent_markers or j.child_markers for j in cfg.joints):
+        wanted[cfg.marker_topic] = _MARKER_MSGTYPE[cfg.marker_type]
+    for j in cfg.joints:
+        for topic in (j.parent_pose_topic, j.child_pose_topic):
+            if topic:
+                wanted[topic] = _POSE_MSGTYPE
+    infos = select_topics(path, list(wanted))
+    for (name, msgtype), info in zip(wanted.items(), infos, strict=True):
+        if info.msgtype != msgtype:
+            raise InputError(
+                f"{path}: topic {info.name} holds {info.msgtype}, the configuration reads {name} as {msgtype}"
+                + (" (marker_type)" if msgtype in _MARKER_MSGTYPE.values() else "")
+            )
+    return [i.name for i in infos], max((i.count for i in infos), default=0)
+
+
+def _bag_events(run: FitRun, topics: list[str]) -> Iterator[None]:
+    """Route every message; yields once per message."""
+    router = run.router
+    assert router is not None
+    marker_topic = topics[0] if any(r.uses_marker_topic for r in router.runners) else None
+    traces = {id(t.runner): t for t in run.traces}
+    for msg in iter_bag_messages(run.path, topics):
+        routed = router.markers(msg.raw) if msg.topic == marker_topic else router.pose(msg.topic, msg.raw)
+        for r in routed:
+            t = traces[id(r.runner)]
+            t.output_stamps.append(r.stamp_ns * 1e-9)
+            t.residuals.append(r.output.residual)
+        yield None
+
+
+def _marker_events(run: FitRun, data: MarkerData) -> Iterator[None]:
+    """Give every frame of a marker file to every joint; yields once per frame."""
+    frames = data.select(run.cfg.marker_names)
+    stamps_ns = np.rint((data.first_frame + np.arange(data.n_frames)) / data.rate * 1e9).astype(np.int64)
+    run.frames = frames
+    run.stamps = stamps_ns.astype(np.float64) * 1e-9
+    for k in range(frames.shape[0]):
+        stamp = int(stamps_ns[k])
+        for t in run.traces:
+            out = t.runner.markers_frame(stamp, frames[k])
+            if out is not None:
+                t.output_stamps.append(stamp * 1e-9)
+                t.residuals.append(out.residual)
+        yield None
+
+
+def _checkpoint(traces: list[JointTrace]) -> None:
+    for t in traces:
+        if t.runner.estimate(force=True) and t.runner.estimator.solution is not None:
+            t.checkpoints.append(checkpoint_of(t.runner.counters["frames"], t.runner.estimator.solution))
+
+
+def run_fit(
+    path: str | os.PathLike[str],
+    cfg: NodeConfig,
+    *,
+    whole_recording: bool = True,
+    n_checkpoints: int = 60,
+    keep_frames: bool = True,
+    progress: ProgressFn | None = None,
+) -> FitRun:
+    """Run every configured joint over a recording, in order, and solve at the end.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A rosbag2 bag (directory, ``.db3``, ``.mcap``), a ``.c3d`` or a ``.trc`` file.
+    cfg : NodeConfig
+        The node's configuration (:func:`~jointfit_ros.params.node_config`):
+        bags are read on its ``marker_topic`` (as ``marker_type``) and pose
+        topics; C3D/TRC files give the markers named in ``marker_names``.
+    whole_recording : bool
+        Widen every joint's window to the whole recording (default). False
+        keeps the configured windows: the result is then what the node holds
+        at the end of the recording.
+    n_checkpoints : int
+        Estimates taken along the way for the convergence curve.
+    keep_frames : bool
+        Keep the marker frames (``FitRun.frames``) for the report.
+    progress : callable, optional
+        ``progress(done, total)`` called about every 1 % of the inputs.
+
+    Returns
+    -------
+    FitRun
+        Each joint's final estimate is ``trace.final`` (None, with
+        ``trace.runner.last_error`` saying why, when there is none).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable input, a bag without the configured topics (or
+        with other message types), a C3D/TRC without the configured markers.
+    ConfigError
+        Pose-topic joints with a C3D/TRC input.
+    MissingDependencyError
+        ``rosbags`` (bags) or ``ezc3d`` (C3D) missing.
+    """
+    file = Path(path)
+    kind = input_kind(file)
+    if kind == "bag":
+        topics, total = _bag_topics(file, cfg)
+        run_cfg = _offline_config(cfg, total + 1 if whole_recording else None)
+        run = FitRun(file, kind, run_cfg, [])
+        run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
+        run.router = MessageRouter(run_cfg, [t.runner for t in run.traces])
+        if keep_frames:
+            run.router.recorded = []
+        events = _bag_events(run, topics)
+    else:
+        data = _read_markers(file, kind, cfg)
+        total = data.n_frames
+        run_cfg = _offline_config(cfg, total + 1 if whole_recording else None)
+        run = FitRun(file, kind, run_cfg, [], units=data.units, rate=data.rate)
+        run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
+        events = _marker_events(run, data)
+    step = max(1, total // max(n_checkpoints, 1))
+    tick = max(1, total // 100)
+    done = 0
+    for _ in events:
+        done += 1
+        if done % step == 0:
+            _checkpoint(run.traces)
+        if progress is not None and done % tick == 0:
+            progress(done, total)
+    run.n_inputs = done
+    for t in run.traces:
+        if not t.runner.estimate(force=True):
+            continue  # no final estimate: an earlier one must not pass for it
+        t.final = t.runner.estimator.solution
+        if t.final is not None and (not t.checkpoints or t.checkpoints[-1].frames != t.runner.counters["frames"]):
+            t.checkpoints.append(checkpoint_of(t.runner.counters["frames"], t.final))
+    if progress is not None:
+        progress(done, total)
+    if run.router is not None and run.router.recorded:
+        run.stamps = np.array([s for s, _ in run.router.recorded], dtype=np.float64) * 1e-9
+        run.frames = np.stack([f for _, f in run.router.recorded])
+        run.router.recorded = None
+    if not keep_frames:
+        run.frames = None
+    return run

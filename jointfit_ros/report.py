@@ -1,0 +1,422 @@
+"""What ``jointfit fit`` reports: a JSON-able summary and one figure per joint.
+
+ROS-free. :func:`fit_summary` turns a :class:`~jointfit_ros.offline.FitRun`
+into plain types (estimates in the parent and child segment frames, their
+covariances and standard deviations, residuals, identifiability verdicts,
+counters). :func:`joint_figure` draws, for one joint, from the kept marker
+frames and the final templates:
+
+1. the child markers in the parent segment frame, with the fitted sphere
+   (ball) or circles and axis (hinge);
+2. each marker's distance to its posed template over time (the rigid-body
+   residual: label swaps, ghosts and skin motion show up here);
+3. the joint constraint residual of every per-frame output over time;
+4. the estimate minus the final one, with +-2 sd bands, against the frames
+   used (the convergence curve);
+5. the reported standard deviation against the frames used;
+6. the covariance ellipses (1, 2 and 3 sd) of the final estimate, in the
+   three coordinate planes of the parent frame.
+
+matplotlib is needed only for the figures (imported by :func:`joint_figure`).
+"""
+
+from __future__ import annotations
+
+import html
+import io
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jointfit_core.errors import MissingDependencyError
+from jointfit_core.hinge_from_sums import PoseSumsAxis
+from jointfit_core.pose import poses_from_markers
+from jointfit_core.segments import PoseSumsCentre
+
+from .offline import FitRun, JointTrace
+
+__all__ = ["fit_summary", "joint_figure", "html_page", "SegmentGeometry", "segment_geometry"]
+
+FloatArray = NDArray[np.float64]
+
+
+def _sd(cov: FloatArray) -> list[float]:
+    return [float(v) for v in np.sqrt(np.clip(np.diag(cov), 0.0, None))]
+
+
+def _angle_sd_deg(cov_direction: FloatArray) -> float:
+    """Largest angular sd of a unit direction, degrees."""
+    return math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov_direction)[-1]), 0.0)))
+
+
+def _list(a: FloatArray) -> list[Any]:
+    out: list[Any] = np.asarray(a, dtype=np.float64).tolist()
+    return out
+
+
+class SegmentGeometry:
+    """Per-frame poses of both segments from the kept frames and the final templates.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Frame times, s from the first frame.
+    residual_parent, residual_child : ndarray, shape (N, Pp) and (N, Pc)
+        Distance of each marker from its posed template point, input units
+        (NaN where missing or not posed).
+    child_in_parent : ndarray, shape (N, Pc, 3)
+        Child markers in the parent segment frame, input units.
+    """
+
+    def __init__(self, t: FloatArray, rp: FloatArray, rc: FloatArray, cip: FloatArray) -> None:
+        self.t = t
+        self.residual_parent = rp
+        self.residual_child = rc
+        self.child_in_parent = cip
+
+
+def _residuals(markers: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    poses = poses_from_markers(markers, template)
+    fitted = np.einsum("nij,pj->npi", poses.R_world_local, template) + poses.d_world_local[:, None, :]
+    return np.linalg.norm(fitted - markers, axis=2), poses.R_world_local, poses.d_world_local
+
+
+def segment_geometry(run: FitRun, trace: JointTrace) -> SegmentGeometry | None:
+    """Poses and residuals of a marker joint (None for pose inputs, without frames or templates)."""
+    r = trace.runner
+    tp, tc = r.estimator.templates
+    if run.frames is None or tp is None or tc is None or not len(r.parent_rows) or not len(r.child_rows):
+        return None
+    parent = run.frames[:, r.parent_rows]
+    child = run.frames[:, r.child_rows]
+    with np.errstate(invalid="ignore"):
+        rp, R_p, d_p = _residuals(parent, tp)
+        rc, _, _ = _residuals(child, tc)
+        cip = np.einsum("nji,npj->npi", R_p, child - d_p[:, None, :])
+    return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip)
+
+
+def _joint_summary(run: FitRun, trace: JointTrace) -> dict[str, Any]:
+    r = trace.runner
+    est = r.estimator
+    sol = trace.final
+    out: dict[str, Any] = {
+        "name": r.cfg.name,
+        "type": r.cfg.type,
+        "parent": list(r.cfg.parent_markers) or r.cfg.parent_pose_topic,
+        "child": list(r.cfg.child_markers) or r.cfg.child_pose_topic,
+        "frames_received": r.counters["frames"],
+        "frames_in_window": est.n_window,
+        "outputs": r.counters["outputs"],
+        "malformed_frames": r.counters["malformed"],
+        "unmatched_inputs": r.counters["unmatched"],
+        "dropped": dict(sorted(est.dropped.items())),
+    }
+    if sol is None:
+        out["status"] = "no estimate"
+        out["message"] = r.last_error or est.status() or "too few frames"
+        return out
+    out["status"] = "ok" if sol.identifiable else "not identifiable"
+    out["identifiable"] = bool(sol.identifiable)
+    out["reason"] = sol.reason
+    out["message"] = sol.reason if not sol.identifiable else ""
+    out["rms_residual"] = float(sol.rms)
+    out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
+    if isinstance(sol, PoseSumsCentre):
+        out["centre_parent"] = _list(sol.centre_parent)
+        out["sd_parent"] = _sd(sol.cov_parent)
+        out["cov_parent"] = _list(sol.cov_parent)
+        out["centre_child"] = _list(sol.centre_child)
+        out["sd_child"] = _sd(sol.cov_child)
+        out["cov_child"] = _list(sol.cov_child)
+    elif isinstance(sol, PoseSumsAxis):
+        out["direction_parent"] = _list(sol.direction_parent)
+        out["direction_sd_deg_parent"] = _angle_sd_deg(sol.cov_direction_parent)
+        out["cov_direction_parent"] = _list(sol.cov_direction_parent)
+        out["point_parent"] = _list(sol.point_parent)
+        out["point_sd_parent"] = _sd(sol.cov_point_parent)
+        out["cov_point_parent"] = _list(sol.cov_point_parent)
+        out["direction_child"] = _list(sol.direction_child)
+        out["direction_sd_deg_child"] = _angle_sd_deg(sol.cov_direction_child)
+        out["point_child"] = _list(sol.point_child)
+        out["point_sd_child"] = _sd(sol.cov_point_child)
+    geo = segment_geometry(run, trace)
+    if geo is not None:
+        rms: dict[str, float | None] = {}
+        for names, res in ((r.cfg.parent_markers, geo.residual_parent), (r.cfg.child_markers, geo.residual_child)):
+            for k, name in enumerate(names):
+                col = res[:, k]
+                col = col[np.isfinite(col)]
+                rms[name] = float(np.sqrt(np.mean(col**2))) if col.size else None
+        out["marker_residual_rms"] = rms
+    return out
+
+
+def fit_summary(run: FitRun, *, elapsed_s: float, version: str) -> dict[str, Any]:
+    """The summary of a fit as JSON-able plain types.
+
+    Parameters
+    ----------
+    run : FitRun
+    elapsed_s : float
+        Wall time of the fit, s.
+    version : str
+        jointfit's version.
+
+    Returns
+    -------
+    dict
+        ``input``, ``input_kind``, ``units`` (as the file declares them;
+        ``""`` for bags), ``inputs_read``, ``elapsed_s``, ``router`` (bag
+        message counters) and ``joints``: per joint its estimate in the
+        parent and the child segment frames (the frames of the templates the
+        calibration file stores) with covariances (units squared) and
+        standard deviations, the rms residuals, the verdict and the counters.
+    """
+    return {
+        "jointfit_version": version,
+        "input": str(run.path),
+        "input_kind": run.kind,
+        "units": run.units,
+        "rate_hz": run.rate,
+        "inputs_read": run.n_inputs,
+        "elapsed_s": round(elapsed_s, 3),
+        "router": dict(run.router.counters) if run.router is not None else {},
+        "joints": [_joint_summary(run, t) for t in run.traces],
+    }
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _pyplot() -> Any:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise MissingDependencyError("the report figures need matplotlib: pip install 'jointfit[plot]'") from None
+    return plt
+
+
+def _subsample(n: int, at_most: int) -> NDArray[np.intp]:
+    return np.unique(np.linspace(0, n - 1, min(n, at_most)).astype(np.intp)) if n else np.zeros(0, np.intp)
+
+
+def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | PoseSumsAxis, names: tuple[str, ...], unit: str) -> None:
+    pts = geo.child_in_parent
+    keep = _subsample(pts.shape[0], 1500)
+    u = np.linspace(0, 2 * np.pi, 40)
+    for k, name in enumerate(names):
+        p = pts[keep, k]
+        p = p[np.isfinite(p).all(axis=1)]
+        line = ax.plot(p[:, 0], p[:, 1], p[:, 2], ".", ms=1.5, label=name)[0]
+        allp = pts[:, k][np.isfinite(pts[:, k]).all(axis=1)]
+        if not allp.size:
+            continue
+        if isinstance(sol, PoseSumsCentre):
+            c = sol.centre_parent
+            rad = float(np.median(np.linalg.norm(allp - c, axis=1)))
+            v = np.linspace(0, np.pi, 20)
+            xs = c[0] + rad * np.outer(np.cos(u), np.sin(v))
+            ys = c[1] + rad * np.outer(np.sin(u), np.sin(v))
+            zs = c[2] + rad * np.outer(np.ones_like(u), np.cos(v))
+            ax.plot_wireframe(xs, ys, zs, color=line.get_color(), alpha=0.12, linewidth=0.5)
+        else:
+            a, q = sol.direction_parent, sol.point_parent
+            rel = allp - q
+            along = rel @ a
+            centre = q + float(np.median(along)) * a
+            radial = rel - np.outer(along, a)
+            rad = float(np.median(np.linalg.norm(radial, axis=1)))
+            e1 = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(a, e1)
+            circle = centre + rad * (np.outer(np.cos(u), e1) + np.outer(np.sin(u), e2))
+            ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], "-", color=line.get_color(), lw=1)
+    if isinstance(sol, PoseSumsCentre):
+        c = sol.centre_parent
+        ax.plot([c[0]], [c[1]], [c[2]], "k*", ms=10, label="centre")
+        ax.set_title("child markers in the parent frame\nand their fitted spheres", fontsize=9)
+    else:
+        a, q = sol.direction_parent, sol.point_parent
+        flat = pts[np.isfinite(pts).all(axis=2)]
+        span = float(np.ptp((flat - q) @ a)) if flat.size else 1.0
+        extent = float(np.max(np.ptp(flat, axis=0))) if flat.size else 1.0
+        half = max(0.75 * span, 0.35 * extent, 1e-9)
+        ends = q + np.outer([-half, half], a) + float(np.median((flat - q) @ a)) * a
+        ax.plot(ends[:, 0], ends[:, 1], ends[:, 2], "k-", lw=2, label="axis")
+        ax.set_title("child markers in the parent frame\nwith their fitted circles and the axis", fontsize=9)
+    # Equal scales, so that spheres look round and circles circular.
+    flat = pts[np.isfinite(pts).all(axis=2)]
+    if flat.size:
+        lo, hi = flat.min(axis=0), flat.max(axis=0)
+        mid, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 1e-9)
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_zlim(mid[2] - half, mid[2] + half)
+        ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"y ({unit})")
+    ax.set_zlabel(f"z ({unit})")
+    legend = ax.legend(fontsize=7, loc="upper left")
+    for handle in legend.legend_handles:
+        if hasattr(handle, "set_markersize"):
+            handle.set_markersize(6)
+
+
+def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, unit: str) -> None:
+    cfg = trace.runner.cfg
+    for res, names, style in ((geo.residual_parent, cfg.parent_markers, "-"), (geo.residual_child, cfg.child_markers, "--")):
+        for k, name in enumerate(names):
+            ax.plot(geo.t, res[:, k], style, lw=0.7, label=name)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"marker to posed template ({unit})")
+    ax.set_title("rigid-body residual per marker\n(parent solid, child dashed)", fontsize=9)
+    ax.legend(fontsize=7, ncol=2)
+
+
+def _draw_joint_residual(ax: Any, trace: JointTrace, t0: float, unit: str) -> None:
+    t = np.asarray(trace.output_stamps) - t0
+    ax.plot(t, trace.residuals, ".", ms=1.5, color="C0")
+    ax.set_xlabel("time (s)")
+    what = "centres carried by parent and child" if trace.runner.cfg.type == "ball" else "parent axis point to child axis"
+    ax.set_ylabel(f"distance ({unit})")
+    ax.set_title(f"per-frame joint residual: {what}", fontsize=9)
+
+
+def _draw_convergence(ax_est: Any, ax_sd: Any, trace: JointTrace, unit: str) -> None:
+    cps = trace.checkpoints
+    n = np.array([c.frames for c in cps], dtype=np.float64)
+    pos = np.array([c.position for c in cps])
+    sd = np.sqrt(np.clip(np.array([np.diag(c.cov) for c in cps]), 0.0, None))
+    final = pos[-1]
+    for k, axis in enumerate("xyz"):
+        line = ax_est.plot(n, pos[:, k] - final[k], "-", label=axis)[0]
+        ax_est.fill_between(n, pos[:, k] - final[k] - 2 * sd[:, k], pos[:, k] - final[k] + 2 * sd[:, k], color=line.get_color(), alpha=0.15)
+    what = "centre" if trace.runner.cfg.type == "ball" else "axis point"
+    ax_est.set_xlabel("frames used")
+    ax_est.set_ylabel(f"{what} minus final ({unit})")
+    ax_est.set_title(f"convergence of the {what} (bands: +-2 sd)", fontsize=9)
+    ax_est.legend(fontsize=7)
+    big = np.nanmax(np.abs(pos[len(pos) // 4 :] - final) + 2 * sd[len(pos) // 4 :], initial=0.0)
+    if big > 0:
+        ax_est.set_ylim(-1.2 * big, 1.2 * big)
+    sd_max = np.sqrt(np.clip([np.linalg.eigvalsh(c.cov)[-1] for c in cps], 0.0, None))
+    ax_sd.loglog(n, sd_max, "C0-", label=f"{what}: largest sd ({unit})")
+    ax_sd.set_xlabel("frames used")
+    ax_sd.set_ylabel(f"sd ({unit})")
+    if cps[0].cov_direction is not None:
+        deg = [_angle_sd_deg(c.cov_direction) for c in cps if c.cov_direction is not None]
+        ax2 = ax_sd.twinx()
+        ax2.loglog(n, deg, "C1--", label="direction: largest sd (deg)")
+        ax2.set_ylabel("direction sd (deg)")
+        ax2.legend(fontsize=7, loc="upper right")
+    ax_sd.legend(fontsize=7, loc="lower left")
+    ax_sd.set_title("reported uncertainty vs frames used", fontsize=9)
+
+
+def _draw_ellipses(ax: Any, cov: FloatArray, unit: str, title: str) -> None:
+    u = np.linspace(0, 2 * np.pi, 100)
+    circle = np.stack([np.cos(u), np.sin(u)])
+    for (i, j), colour in zip(((0, 1), (0, 2), (1, 2)), ("C0", "C1", "C2"), strict=True):
+        c2 = cov[np.ix_((i, j), (i, j))]
+        w, v = np.linalg.eigh(c2)
+        root = v @ np.diag(np.sqrt(np.clip(w, 0.0, None)))
+        for s, style in ((1, "-"), (2, "--"), (3, ":")):
+            e = s * root @ circle
+            ax.plot(e[0], e[1], style, color=colour, lw=1, label=f"{'xyz'[i]}-{'xyz'[j]} plane" if s == 1 else None)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.yaxis.tick_right()
+    ax.yaxis.set_label_position("right")
+    ax.axhline(0, color="0.8", lw=0.5)
+    ax.axvline(0, color="0.8", lw=0.5)
+    ax.set_xlabel(f"first coordinate of the plane ({unit})")
+    ax.set_ylabel(f"second coordinate ({unit})")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+
+
+def _headline(trace: JointTrace, unit: str) -> str:
+    r = trace.runner
+    sol = trace.final
+    head = f"{r.cfg.name} ({r.cfg.type})"
+    if sol is None:
+        return f"{head}: no estimate: {r.last_error or r.estimator.status()}"
+    verdict = "identifiable" if sol.identifiable else f"NOT identifiable: {sol.reason}"
+    frames = f"{sol.n_frames} frames, rms constraint residual {sol.rms:.3g} {unit}"
+    if isinstance(sol, PoseSumsCentre):
+        c, s = sol.centre_parent, _sd(sol.cov_parent)
+        est = "centre (parent frame) = (" + ", ".join(f"{v:.4g}" for v in c) + ") +- (" + ", ".join(f"{v:.2g}" for v in s) + f") {unit}"
+    else:
+        d = sol.direction_parent
+        est = "axis direction (parent frame) = (" + ", ".join(f"{v:.3f}" for v in d) + f") +- {_angle_sd_deg(sol.cov_direction_parent):.2g} deg"
+    return f"{head}: {est}\n{frames}; {verdict}"
+
+
+def joint_figure(run: FitRun, trace: JointTrace) -> bytes:
+    """One joint's report figure as PNG bytes (see the module docstring for the panels).
+
+    Raises
+    ------
+    MissingDependencyError
+        matplotlib is not installed.
+    """
+    plt = _pyplot()
+    unit = run.units or "input units"
+    fig = plt.figure(figsize=(17, 10))
+    try:
+        grid = fig.add_gridspec(2, 3, hspace=0.35, wspace=0.45)
+        geo = segment_geometry(run, trace)
+        sol = trace.final
+        if geo is not None and sol is not None:
+            _draw_trajectories(fig.add_subplot(grid[0, 0], projection="3d"), geo, sol, trace.runner.cfg.child_markers, unit)
+            _draw_marker_residuals(fig.add_subplot(grid[0, 1]), geo, trace, unit)
+        else:
+            for k in range(2):
+                ax = fig.add_subplot(grid[0, k])
+                ax.axis("off")
+                ax.text(0.5, 0.5, "no marker frames (pose inputs)" if sol is not None else "no estimate", ha="center")
+        t0 = float(run.stamps[0]) if run.stamps.size else (trace.output_stamps[0] if trace.output_stamps else 0.0)
+        _draw_joint_residual(fig.add_subplot(grid[0, 2]), trace, t0, unit)
+        if trace.checkpoints:
+            _draw_convergence(fig.add_subplot(grid[1, 0]), fig.add_subplot(grid[1, 1]), trace, unit)
+        if sol is not None:
+            if isinstance(sol, PoseSumsCentre):
+                _draw_ellipses(fig.add_subplot(grid[1, 2]), sol.cov_parent, unit, "centre covariance (parent frame): 1, 2, 3 sd")
+            else:
+                _draw_ellipses(fig.add_subplot(grid[1, 2]), sol.cov_point_parent, unit, "axis point covariance (parent frame): 1, 2, 3 sd")
+        fig.suptitle(_headline(trace, unit), fontsize=11)
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=90)
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def html_page(summary: dict[str, Any], images: dict[str, str]) -> str:
+    """A single HTML page: per joint a table of the summary's scalars and its figure (``images``: joint -> file name)."""
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>jointfit report</title>",
+        "<style>body{font-family:sans-serif;margin:2em} td,th{padding:2px 8px;text-align:left;vertical-align:top}"
+        " img{max-width:100%}</style></head><body>",
+        f"<h1>jointfit report: {html.escape(summary['input'])}</h1>",
+        f"<p>{summary['inputs_read']} inputs read in {summary['elapsed_s']} s; units: "
+        f"{html.escape(summary['units'] or 'as the input')}; jointfit {html.escape(summary['jointfit_version'])}</p>",
+    ]
+    for joint in summary["joints"]:
+        parts.append(f"<h2>{html.escape(joint['name'])} ({html.escape(joint['type'])}): {html.escape(joint['status'])}</h2><table>")
+        for key, value in joint.items():
+            if key.startswith("cov") or key in ("name", "type"):
+                continue
+            if isinstance(value, list) and value and isinstance(value[0], float):
+                value = ", ".join(f"{v:.5g}" for v in value)
+            parts.append(f"<tr><th>{html.escape(key)}</th><td>{html.escape(str(value))}</td></tr>")
+        parts.append("</table>")
+        if joint["name"] in images:
+            parts.append(f"<p><img src='{html.escape(images[joint['name']])}' alt='{html.escape(joint['name'])}'></p>")
+    parts.append("</body></html>")
+    return "\n".join(parts)

@@ -1,0 +1,310 @@
+"""``jointfit fit``: bags, C3D and TRC in; calibrations, summary and report out; bad input refused cleanly.
+
+No ROS is started here (test_cli_round_trip.py replays a bag into the node).
+The same synthetic recording (jointfit_ros.fake_mocap: a hip ball joint and a
+knee hinge with known truth) is written as a bag and as a TRC file; ``fit``
+must give the estimates of an :class:`OnlineJoint` fed the same frames
+directly, in every input format, and the real fixtures must produce readable
+report files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from jointfit_core.calibration import load_calibration
+from jointfit_core.estimator import OnlineJoint
+from jointfit_core.io import MarkerData, write_trc
+from jointfit_ros.cli import fit_main
+from jointfit_ros.fake_mocap import frame_at, make_rigs, marker_names
+from jointfit_ros.params import node_config, params_from_file
+from jointfit_ros.runner import JointRunner
+
+pytest.importorskip("rosbags")
+from bagtools import write_marker_bag
+
+DATA = Path(__file__).parent / "data"
+CONFIG = Path(__file__).parents[1] / "config"
+RATE = 100.0
+N_FRAMES = 1500
+
+
+def _recording(seed: int = 3) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Frames (N, 16, 3) in mm of the fake hip + knee, 2 % occlusions, and their stamps (ns)."""
+    rigs = make_rigs(seed)
+    rng = np.random.default_rng(seed)
+    t = np.arange(N_FRAMES) / RATE
+    frames = np.stack([frame_at(rigs, float(tk), rng, 0.5, 0.02) for tk in t])
+    return frames, (1_000_000_000_000 + np.rint(t * 1e9)).astype(np.int64)
+
+
+@pytest.fixture(scope="module")
+def recording() -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    return _recording()
+
+
+def _config(path: Path, *, hip_markers: str = "[PELV1, PELV2, PELV3, PELV4]", extra: str = "") -> Path:
+    text = f"""jointfit:
+  ros__parameters:
+    joints: [hip, knee]
+    marker_names: [{", ".join(marker_names(0))}]
+    marker_topic: /mocap/markers
+{extra}    hip:
+      type: ball
+      parent_markers: {hip_markers}
+      child_markers: [THIGH1, THIGH2, THIGH3, THIGH4]
+      window: 500
+      template_frames: 30
+      calibration_file: "{path.parent / "installed" / "hip.yaml"}"
+    knee:
+      type: hinge
+      parent_markers: [FEMUR1, FEMUR2, FEMUR3, FEMUR4]
+      child_markers: [SHANK1, SHANK2, SHANK3, SHANK4]
+      window: 500
+      template_frames: 30
+"""
+    path.write_text(text)
+    return path
+
+
+def _direct(frames: NDArray[np.float64], stamps_ns: NDArray[np.int64], config: Path) -> dict[str, OnlineJoint]:
+    """The estimators of the config fed every frame directly, windows covering the recording."""
+    cfg = node_config(params_from_file(config))
+    out = {}
+    for j in cfg.joints:
+        runner = JointRunner(j, cfg)
+        est = OnlineJoint(j.type, window=len(frames) + 1, template_frames=j.template_frames)
+        for frame, stamp in zip(frames, stamps_ns, strict=True):
+            est.update(frame[runner.parent_rows], frame[runner.child_rows], stamp * 1e-9)
+        est.estimate()
+        out[j.name] = est
+    return out
+
+
+def _fit(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
+    assert args[0] == "fit"
+    code = fit_main([str(a) for a in args[1:]])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _same_estimate(a: dict[str, object], b: dict[str, object], rtol: float = 1e-9) -> None:
+    for key in a:
+        va, vb = a[key], b[key]
+        if isinstance(va, list):
+            np.testing.assert_allclose(np.array(va, dtype=float), np.array(vb, dtype=float), rtol=rtol, atol=1e-9)
+        else:
+            assert va == vb, key
+
+
+@pytest.mark.parametrize(("storage", "msgtype"), [("sqlite3", "pose_array"), ("mcap", "pointcloud2")])
+def test_fit_bag_equals_direct_estimators(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]],
+    storage: str, msgtype: str,
+) -> None:
+    frames, stamps = recording
+    bag = write_marker_bag(tmp_path / "rec", frames, stamps, storage=storage, topic="/mocap/markers", msgtype=msgtype)
+    extra = "    marker_type: pointcloud2\n    label_field: label\n" if msgtype == "pointcloud2" else ""
+    config = _config(tmp_path / "params.yaml", extra=extra)
+    out = tmp_path / "out"
+    code, stdout, _ = _fit(capsys, "fit", bag, "--config", config, "--out", out, "--no-report")
+    assert code == 0, stdout
+    assert sorted(p.name for p in out.iterdir()) == ["hip.calibration.yaml", "knee.calibration.yaml", "summary.json"]
+    direct = _direct(frames, stamps, config)
+    for name, est in direct.items():
+        saved = load_calibration(out / f"{name}.calibration.yaml")
+        _same_estimate(saved["estimate"], est.to_dict()["estimate"])
+        np.testing.assert_allclose(saved["template_parent"], est.templates[0], rtol=0, atol=1e-12)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["inputs_read"] == N_FRAMES and summary["input_kind"] == "bag"
+    hip, knee = summary["joints"]
+    assert hip["status"] == knee["status"] == "ok"
+    assert [hip["frames_in_window"], knee["frames_in_window"]] == [direct["hip"].n_window, direct["knee"].n_window]
+    assert direct["hip"].n_window > N_FRAMES - 20  # (frames with fewer than 3 markers on a segment are dropped)
+
+
+def test_fit_trc_equals_bag(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    frames, stamps = recording
+    frames = np.round(frames, 5)  # what a TRC file holds
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))
+    bag = write_marker_bag(tmp_path / "rec", frames, stamps, topic="/mocap/markers")
+    config = _config(tmp_path / "params.yaml")
+    assert _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "a", "--no-report")[0] == 0
+    assert _fit(capsys, "fit", bag, "--config", config, "--out", tmp_path / "b", "--no-report")[0] == 0
+    for name in ("hip", "knee"):
+        a = load_calibration(tmp_path / "a" / f"{name}.calibration.yaml")["estimate"]
+        b = load_calibration(tmp_path / "b" / f"{name}.calibration.yaml")["estimate"]
+        _same_estimate(a, b, rtol=1e-6)  # TRC text holds fewer digits than the bag's float64
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["units"] == "mm" and summary["rate_hz"] == RATE
+
+
+def test_window_config_is_what_the_node_holds(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    frames, stamps = recording
+    bag = write_marker_bag(tmp_path / "rec", frames, stamps, topic="/mocap/markers")
+    config = _config(tmp_path / "params.yaml")
+    assert _fit(capsys, "fit", bag, "--config", config, "--out", tmp_path / "o", "--window", "config", "--no-report")[0] == 0
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert [j["frames_in_window"] for j in summary["joints"]] == [500, 500]
+    assert summary["window"] == "config"
+
+
+def test_write_calibration_installs_for_the_node(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    frames, stamps = recording
+    bag = write_marker_bag(tmp_path / "rec", frames, stamps, topic="/mocap/markers")
+    config = _config(tmp_path / "params.yaml")
+    installed = tmp_path / "installed" / "hip.yaml"
+    installed.parent.mkdir()
+    installed.write_text("old: calibration\n")
+    code, stdout, _ = _fit(capsys, "fit", bag, "--config", config, "--out", tmp_path / "o", "--no-report", "--write-calibration")
+    assert code == 0 and f"installed calibration {installed}" in stdout
+    assert (installed.parent / "hip.yaml.bak").read_text() == "old: calibration\n"
+    # The node's runner loads it and starts frozen with the fitted estimate; the offline fit
+    # itself never loaded the old file (it estimated from the recording).
+    cfg = node_config(params_from_file(config))
+    runner = JointRunner(cfg.joints[0], cfg)
+    assert runner.loaded_from == str(installed) and runner.estimator.frozen
+    saved = load_calibration(tmp_path / "o" / "hip.calibration.yaml")["estimate"]
+    np.testing.assert_allclose(runner.estimator.solution.centre_parent, saved["centre_parent"], rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("fixture", "config", "joint", "identifiable"),
+    [
+        ("biobuddy/right_hip.c3d", "offline_right_hip.yaml", "right_hip", True),
+        ("biobuddy/right_knee.c3d", "offline_right_knee.yaml", "right_knee", True),
+        ("kineticstoolkit/kinematics_racing_full.c3d", "offline_right_elbow.yaml", "right_elbow", False),
+    ],
+)
+def test_real_fixtures_report(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fixture: str, config: str, joint: str, identifiable: bool
+) -> None:
+    pytest.importorskip("ezc3d")
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "report"
+    code, stdout, stderr = _fit(capsys, "fit", DATA / fixture, "--config", CONFIG / config, "--out", out, "--html")
+    assert code == (0 if identifiable else 3), stderr
+    png = (out / f"{joint}.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = struct.unpack(">II", png[16:24])
+    assert (width, height) == (1530, 900) and len(png) > 100_000  # six panels of data, not an empty canvas
+    html = (out / "report.html").read_text()
+    assert f"src='{joint}.png'" in html and "identifiable" in html
+    summary = json.loads((out / "summary.json").read_text())
+    j = summary["joints"][0]
+    assert j["status"] == ("ok" if identifiable else "not identifiable")
+    assert (out / f"{joint}.calibration.yaml").exists() == identifiable
+    assert all(v is not None and v > 0 for v in j["marker_residual_rms"].values())
+    if joint == "right_knee":
+        # The sign convention of the config: the axis points toward the lateral epicondyle (RLFE).
+        assert j["direction_sd_deg_parent"] < 2.0
+    if joint == "right_elbow":
+        assert "not a hinge" in j["reason"] and "NOT identifiable" in stdout
+
+
+def _error_line(stderr: str) -> str:
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+def test_bad_inputs_one_line_nothing_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    frames, stamps = recording
+    bag = write_marker_bag(tmp_path / "rec", frames[:50], stamps[:50], topic="/other/markers")
+    config = _config(tmp_path / "params.yaml")
+    out = tmp_path / "out"
+    cases = {
+        "missing file": ([tmp_path / "nope.c3d", "--config", config], "no such file"),
+        "bag without the topic": ([bag, "--config", config], "topics not in the bag: /mocap/markers"),
+        "c3d without the markers": ([DATA / "biobuddy/right_hip.c3d", "--config", config], "markers not found"),
+        "config names unknown markers": (
+            [bag, "--config", _config(tmp_path / "bad.yaml", hip_markers="[PELV1, PELV2, NOPE]")],
+            "hip.parent_markers: ['NOPE'] are not in marker_names",
+        ),
+        "missing config": ([bag, "--config", tmp_path / "none.yaml"], "no such parameter file"),
+        "not a recording": ([config, "--config", config], "expected a rosbag2 bag"),
+    }
+    for name, (args, expected) in cases.items():
+        code, _, stderr = _fit(capsys, "fit", *args, "--out", out)
+        assert code == 1, name
+        line = _error_line(stderr)
+        assert line.startswith("jointfit fit: error: ") and expected in line, (name, line)
+        assert not out.exists(), name
+    code, _, stderr = _fit(capsys, "fit", bag)
+    assert code == 2 and "--config" in _error_line(stderr)
+
+
+def test_pose_array_bag_read_as_pointcloud2_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    frames, stamps = recording
+    bag = write_marker_bag(tmp_path / "rec", frames[:50], stamps[:50], topic="/mocap/markers")
+    config = _config(tmp_path / "params.yaml", extra="    marker_type: pointcloud2\n")
+    code, _, stderr = _fit(capsys, "fit", bag, "--config", config, "--out", tmp_path / "o")
+    assert code == 1 and "holds geometry_msgs/msg/PoseArray" in _error_line(stderr)
+    assert not (tmp_path / "o").exists()
+
+
+def test_failed_write_leaves_complete_files(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    recording: tuple[NDArray[np.float64], NDArray[np.int64]],
+) -> None:
+    """A write failing half-way (disk full) leaves every file complete (old or new) and no temporary file."""
+    import jointfit_core.atomic as atomic
+
+    frames, stamps = recording
+    bag = write_marker_bag(tmp_path / "rec", frames, stamps, topic="/mocap/markers")
+    config = _config(tmp_path / "params.yaml")
+    out = tmp_path / "o"
+    assert _fit(capsys, "fit", bag, "--config", config, "--out", out, "--no-report")[0] == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real_fsync = os.fsync
+
+    def full_disk(fd: int) -> None:
+        if os.readlink(f"/proc/self/fd/{fd}").find("summary.json") >= 0:
+            raise OSError(28, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(atomic.os, "fsync", full_disk)
+    code, _, stderr = _fit(capsys, "fit", bag, "--config", config, "--out", out, "--no-report")
+    assert code == 1 and "No space left on device" in _error_line(stderr)
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert after.keys() == before.keys() | {"hip.calibration.yaml.bak", "knee.calibration.yaml.bak"}
+    assert after["summary.json"] == before["summary.json"]  # the old one, whole
+    json.loads(after["summary.json"])
+
+
+def test_console_entry_point(tmp_path: Path) -> None:
+    """``python -m jointfit_ros.cli``: usage errors, unknown commands, and fit end to end in a process."""
+    run = [sys.executable, "-m", "jointfit_ros.cli"]
+    done = subprocess.run([*run, "bogus"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "unknown command 'bogus'" in done.stderr
+    shutil.copy(DATA / "biobuddy/right_knee.c3d", tmp_path / "knee.c3d")
+    done = subprocess.run(
+        [*run, "fit", "knee.c3d", "--config", str(CONFIG / "offline_right_knee.yaml"), "--no-report"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("right_knee (hinge): direction_parent (")
+    assert (tmp_path / "knee_jointfit" / "right_knee.calibration.yaml").exists()
