@@ -11,6 +11,8 @@ calibration.
 from __future__ import annotations
 
 import math
+import shutil
+import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -94,6 +96,7 @@ class JointRunner:
         self.counters = {"frames": 0, "outputs": 0, "malformed": 0, "unmatched": 0, "estimate_failures": 0}
         self.last_error = ""
         self.loaded_from: str = ""
+        self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
         self._last_solve = -math.inf
         self._sign_fixed = not cfg.axis_toward_marker
@@ -125,10 +128,15 @@ class JointRunner:
         try:
             est = OnlineJoint.from_dict(load_calibration(path))
         except (InputError, OSError) as exc:
-            self.last_error = f"calibration file {path} not loaded: {exc}"
+            self.last_error = f"calibration file {path} not loaded (kept as it is): {exc}"
+            self._unloadable = True
             return
         if est.kind != self.cfg.type:
-            self.last_error = f"calibration file {path} holds a {est.kind} joint, this joint is a {self.cfg.type}"
+            self.last_error = (
+                f"calibration file {path} not loaded (kept as it is): it holds a {est.kind} joint, "
+                f"this joint is a {self.cfg.type}"
+            )
+            self._unloadable = True
             return
         self.estimator = est
         self._sign_fixed = True  # the saved estimate carries its sign
@@ -248,6 +256,11 @@ class JointRunner:
     def save(self) -> str:
         """Write the calibration file atomically; returns its path.
 
+        A file that was there at start but could not be loaded (corrupt, a
+        newer format, another joint type) is never overwritten: before the
+        first save it is kept as ``<path>.unloadable-<time>``, and the returned
+        text says so.
+
         Raises
         ------
         JointfitError
@@ -258,7 +271,14 @@ class JointRunner:
         path = self.calibration_path
         if path is None:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
-        return str(save_calibration(path, self.estimator.to_dict()))
+        data = self.estimator.to_dict()
+        kept = ""
+        if self._unloadable and path.exists():
+            aside = path.with_name(f"{path.name}.unloadable-{time.strftime('%Y%m%d-%H%M%S')}")
+            shutil.copy2(path, aside)
+            kept = f" (the unloadable previous file is kept as {aside})"
+        self._unloadable = False
+        return str(save_calibration(path, data)) + kept
 
     # ------------------------------------------------------------------ diagnostics
 

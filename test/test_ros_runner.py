@@ -159,7 +159,7 @@ def test_runner_survives_bad_frames_and_bad_files(tmp_path: Any) -> None:
     broken.write_text("format: jointfit-calibration\nversion: 1\nkind: [unclosed\n")
     cfg = node_config(_values(**{"hip.calibration_file": str(broken)}))
     runner = JointRunner(cfg.joints[0], cfg)
-    assert "not loaded" in runner.last_error and not runner.estimator.frozen
+    assert "not loaded (kept as it is)" in runner.last_error and not runner.estimator.frozen
     assert runner.process(1, np.zeros((3, 3)), np.zeros((4, 3))) is None  # wrong marker count: first frame
     assert runner.process(2, np.full((4, 3), np.inf), np.zeros((4, 3))) is None
     assert runner.counters["malformed"] == 2
@@ -243,3 +243,22 @@ def test_markers_for_one_segment_and_a_pose_topic_for_the_other() -> None:
     truth = motion.centre_world_at(times[-1:])[0]  # type: ignore[attr-defined]
     assert np.linalg.norm(out.position - truth) < 5.0
     assert runner.estimator.noise_std[1] == pytest.approx(1.0)  # 2 x the stated translation sd
+
+
+def test_unloadable_calibration_is_never_overwritten(tmp_path: Any) -> None:
+    """A corrupt or incompatible file at start is kept aside (once) before the first save replaces it."""
+    path = tmp_path / "hip.yaml"
+    path.write_text("format: jointfit-calibration\nversion: 99\nkind: ball\n")  # a newer jointfit's file
+    cfg = node_config(_values(**{"hip.window": 800, "hip.template_frames": 20, "hip.calibration_file": str(path)}))
+    runner = JointRunner(cfg.joints[0], cfg)
+    assert "version 99 is not supported" in runner.last_error and not runner.estimator.frozen
+    frames, times, _ = _stream("ball", 400)
+    for k in range(frames.shape[0]):
+        runner.markers_frame(int(times[k] * 1e9), frames[k])
+    text = runner.save()
+    assert text.startswith(str(path)) and "unloadable previous file is kept as" in text
+    kept = [p for p in tmp_path.iterdir() if ".unloadable-" in p.name]
+    assert len(kept) == 1 and kept[0].read_text().endswith("version: 99\nkind: ball\n")
+    assert JointRunner(cfg.joints[0], cfg).estimator.frozen  # the new file loads
+    assert runner.save() == str(path)  # later saves replace the (now own) file, .bak kept
+    assert len([p for p in tmp_path.iterdir() if ".unloadable-" in p.name]) == 1
