@@ -5,6 +5,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+BENCH_STAMP := $(VENV)/.bench-installed
 
 # Keep any ROS traffic from tests, demo and benchmarks on this host.
 ROS_DOMAIN_ID ?= 42
@@ -36,7 +37,13 @@ demo: venv
 demo-offline: venv
 	$(ROS_ENV) $(BIN)/python -m jointfit_core.demo
 
-bench: venv
+# The peer comparison's optional extras (biobuddy: SCoRE/SARA) go into the same .venv,
+# only for the benchmarks; the package never imports them.
+$(BENCH_STAMP): $(STAMP) requirements-bench.txt
+	$(BIN)/python -m pip install -q -r requirements-bench.txt
+	touch $(BENCH_STAMP)
+
+bench: venv $(BENCH_STAMP)
 	shopt -s nullglob; \
 	for f in bench/*.py; do \
 		case "$$(basename "$$f")" in _*) continue ;; esac; \

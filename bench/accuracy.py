@@ -38,11 +38,12 @@ from __future__ import annotations
 import datetime as dt
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from _common import markdown_table
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
@@ -91,12 +92,6 @@ def _mahalanobis_rank(delta: FloatArray, cov: FloatArray, rank: int) -> float:
 def _calibrated(mean_e_k: float, k: int, n: int) -> bool:
     """Mean ``e/k`` within 3 Monte-Carlo standard errors of 1 (chi-square with k dof)."""
     return bool(abs(mean_e_k - 1.0) <= 3.0 * np.sqrt(2.0 / (k * n)))
-
-
-def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" for _ in header) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
 
 
 @dataclass
@@ -182,7 +177,7 @@ def centre_table(rng: np.random.Generator) -> tuple[str, str]:
         f"**Headline** (2 mm noise, 1 deg/frame): plain GL error {e_plain:.2f} mm, bias-compensated "
         f"{e_comp:.2f} mm, ratio {ratio:.2f} ({verdict} the target ratio <= 0.5)."
     )
-    return _markdown(header, rows), headline
+    return markdown_table(header, rows), headline
 
 
 # ----------------------------------------------------------------------------- table 2
@@ -247,7 +242,7 @@ def axis_table(rng: np.random.Generator) -> str:
         "comp e/3",
         "flagged",
     ]
-    return _markdown(header, rows)
+    return markdown_table(header, rows)
 
 
 # ----------------------------------------------------------------------------- table 3
@@ -359,7 +354,7 @@ def segments_table(rng: np.random.Generator, fit: Callable[..., SegmentsCentreFi
                     ]
                 )
     header = ["ROM scale", "N", "method", "err (mm)", "√tr cov (mm)", "e/3", "flagged", "ms/fit"]
-    return _markdown(header, rows), _segments_conclusion(cells)
+    return markdown_table(header, rows), _segments_conclusion(cells)
 
 
 def _segments_conclusion(cells: dict[tuple[float, int, str], _Stats]) -> str:

@@ -73,6 +73,7 @@ from typing import IO
 
 import numpy as np
 import yaml
+from _common import markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
 HELPERS = Path(__file__).resolve().parent / "_latency_helpers.py"
@@ -417,12 +418,6 @@ def pooled(samples: Sequence[Sample], system: str, rate: float, topic: str) -> S
     )
 
 
-def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" for _ in header) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
-
-
 def _pct(part: int, whole: int) -> str:
     return f"{part} ({100.0 * part / whole:.1f} %)" if whole else f"{part}"
 
@@ -462,7 +457,7 @@ def detail_table(samples: Sequence[Sample]) -> str:
         ]
         for s in sorted(samples, key=lambda s: (s.rate, order[s.system], s.round, s.topic))
     ]
-    return _markdown(header, body)
+    return markdown_table(header, body)
 
 
 def _topics(system: str) -> list[str]:
@@ -537,7 +532,7 @@ def summary(samples: Sequence[Sample], rounds: int) -> tuple[str, list[str]]:
             "the drops; compare the rounds, and re-run on a quiet machine (or with `--nice -10`) for the "
             "node's own numbers. p50 and CPU per frame are little affected."
         )
-    return _markdown(header, table), verdict
+    return markdown_table(header, table), verdict
 
 
 # ----------------------------------------------------------------------------- main

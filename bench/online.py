@@ -53,8 +53,6 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import gc
-import os
-import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -63,7 +61,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy
+from _common import machine, markdown_table
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
@@ -106,12 +104,6 @@ _ESTIMATE_ERRORS = (InputError, NotIdentifiableError)
 # ----------------------------------------------------------------------------- helpers
 
 
-def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" for _ in header) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
-
-
 def _us(ns: float) -> float:
     return ns / 1e3
 
@@ -128,25 +120,6 @@ def _occlude(rng: np.random.Generator, markers: FloatArray, fraction: float) -> 
     gone[gone.all(axis=1)] = False
     out[gone] = np.nan
     return out
-
-
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
-def _machine() -> str:
-    return (
-        f"{platform.platform()}, {_cpu_name()}, {os.cpu_count()} CPUs; Python {platform.python_version()}, "
-        f"numpy {np.__version__}, scipy {scipy.__version__}; load average at start "
-        f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}"
-    )
 
 
 def _time_batch(fit: Callable[[int], Any], ends: Sequence[int], budget_s: float) -> tuple[list[int], int]:
@@ -341,7 +314,7 @@ def moments_table(kind: str, rng: np.random.Generator) -> tuple[str, str]:
             f"- {p} markers: update + estimate at {hi} / at {lo} frames = **{r_tot:.2f}** ({verdict} the "
             f"target <= {FLAT_TARGET}); update only {r_upd:.2f}."
         )
-    return _markdown(header, rows), "\n".join(lines)
+    return markdown_table(header, rows), "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------- table 2
@@ -535,7 +508,7 @@ def joint_tables(rng: np.random.Generator) -> tuple[str, str, str]:
         "batch raised",
     ]
     verdict = _joint_verdict(rows)
-    return _markdown(header, table), _markdown(base_header, base_rows), verdict
+    return markdown_table(header, table), markdown_table(base_header, base_rows), verdict
 
 
 def _joint_verdict(rows: Sequence[_JointRow]) -> str:
@@ -580,8 +553,8 @@ def _joint_verdict(rows: Sequence[_JointRow]) -> str:
 def main() -> int:
     t_start = time.perf_counter()
     rng_c, rng_a, rng_j = (np.random.default_rng(s) for s in np.random.SeedSequence(SEED).spawn(3))
-    machine = _machine()
-    print(f"Machine: {machine}", flush=True)
+    host = machine()
+    print(f"Machine: {host}", flush=True)
     centre_md, centre_flat = moments_table("centre", rng_c)
     axis_md, axis_flat = moments_table("axis", rng_a)
     joint_md, base_md, joint_verdict = joint_tables(rng_j)
@@ -590,7 +563,7 @@ def main() -> int:
         "",
         f"Made by `python bench/online.py` on {dt.date.today().isoformat()}, seed {SEED}.",
         "",
-        f"Machine: {machine}.",
+        f"Machine: {host}.",
         "",
         f"Synthetic markers (mm): {NOISE_MM:g} mm noise per coordinate, lab offset {OFFSET_MM} mm, "
         f"{100 * OCCLUDED:g} % of marker positions missing (NaN). All times in microseconds (us), "

@@ -1,0 +1,156 @@
+"""Throughput of ``jointfit fit`` on a long recording against reading the same file alone.
+
+Run with ``python bench/offline.py`` (repository root, ``PYTHONPATH=.:test``); ``--frames N``
+changes the length (default 100 000). Prints Markdown and writes ``bench/results/offline.md``.
+
+The recording: the fake mocap stream (:mod:`jointfit_ros.fake_mocap`: a hip ball joint and a knee
+hinge, 4 + 4 markers each, plus 24 static markers, so 40 markers per frame; 0.5 mm noise, 2 %
+occlusions) at 100 Hz, written as rosbag2 ``PoseArray`` messages in both storages (sqlite3 and
+mcap) with ``rosbags``. For each bag, in the same run:
+
+* **read**: iterate over the messages (:func:`jointfit_ros.bag.iter_bag_messages`): what any
+  tool pays to get the bytes out of the file;
+* **read + parse**: also parse every message into a ``(40, 3)`` frame
+  (:class:`jointfit_ros.inputs.MessageRouter`.frame);
+* **fit**: ``jointfit fit BAG --config ... --no-report`` in-process (:func:`jointfit_ros.cli.fit_main`):
+  read, parse, both joints' estimators over the whole recording (windows covering it), final
+  solve, calibrations and summary written;
+* **fit + report**: the same with the report figures.
+
+Each is timed once after one untimed warm-up read of the bag (file cache). The headline is
+**fit / read**: how much the estimation adds to reading the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import machine, markdown_table
+from bagtools import write_marker_bag
+
+from jointfit_ros.bag import iter_bag_messages
+from jointfit_ros.cli import fit_main
+from jointfit_ros.fake_mocap import extra_marker_positions, frame_at, make_rigs, marker_names
+from jointfit_ros.inputs import MessageRouter
+from jointfit_ros.params import node_config, params_from_file
+
+RESULTS = Path(__file__).resolve().parent / "results" / "offline.md"
+EXTRA = 24
+RATE = 100.0
+
+
+def _config(path: Path) -> Path:
+    path.write_text(
+        f"""jointfit:
+  ros__parameters:
+    joints: [hip, knee]
+    marker_topic: /markers
+    marker_names: [{", ".join(marker_names(EXTRA))}]
+    hip:
+      type: ball
+      parent_markers: [PELV1, PELV2, PELV3, PELV4]
+      child_markers: [THIGH1, THIGH2, THIGH3, THIGH4]
+    knee:
+      type: hinge
+      parent_markers: [FEMUR1, FEMUR2, FEMUR3, FEMUR4]
+      child_markers: [SHANK1, SHANK2, SHANK3, SHANK4]
+"""
+    )
+    return path
+
+
+def _frames(n: int) -> tuple[np.ndarray, np.ndarray]:
+    rigs = make_rigs(0)
+    rng = np.random.default_rng(0)
+    extra = extra_marker_positions(EXTRA, 0)
+    t = np.arange(n) / RATE
+    frames = np.stack([frame_at(rigs, float(tk), rng, 0.5, 0.02, extra=extra) for tk in t]) / 1000.0
+    return frames, (1_700_000_000_000_000_000 + np.rint(t * 1e9)).astype(np.int64)
+
+
+def _timed(fn: object) -> float:
+    start = time.perf_counter()
+    fn()  # type: ignore[operator]
+    return time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=100_000, help="frames in the recording (default 100000)")
+    opts = parser.parse_args(argv)
+    n = opts.frames
+    command = "python bench/offline.py" + (f" --frames {n}" if n != 100_000 else "")
+    print(f"generating {n} frames of 40 markers ...", file=sys.stderr)
+    frames, stamps = _frames(n)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        config = _config(tmp / "params.yaml")
+        cfg = node_config(params_from_file(config))
+        for storage in ("sqlite3", "mcap"):
+            start = time.perf_counter()
+            bag = write_marker_bag(tmp / f"rec_{storage}", frames, stamps, storage=storage, topic="/markers")
+            write_s = time.perf_counter() - start
+            size_mb = sum(p.stat().st_size for p in bag.iterdir()) / 1e6
+            print(f"{storage}: wrote {size_mb:.0f} MB in {write_s:.1f} s", file=sys.stderr)
+
+            def read(bag: Path = bag) -> None:
+                for _ in iter_bag_messages(bag, ["/markers"]):
+                    pass
+
+            def read_parse(bag: Path = bag) -> None:
+                router = MessageRouter(cfg, [])
+                for msg in iter_bag_messages(bag, ["/markers"]):
+                    router.frame(msg.raw)
+
+            def fit(bag: Path = bag, report: bool = False) -> None:
+                args = [str(bag), "--config", str(config), "--out", str(tmp / "out"), "--quiet"]
+                code = fit_main(args if report else [*args, "--no-report"])
+                if code != 0:
+                    raise SystemExit(f"jointfit fit failed with status {code}")
+
+            read()  # warm the file cache
+            t_read = _timed(read)
+            t_parse = _timed(read_parse)
+            t_fit = _timed(fit)
+            t_report = _timed(lambda bag=bag: fit(bag, True))
+            for what, secs in (("read", t_read), ("read + parse", t_parse), ("fit", t_fit), ("fit + report", t_report)):
+                rows.append(
+                    [storage, what, f"{secs:.1f}", f"{n / secs:,.0f}", f"{secs / t_read:.2f}", f"{1e6 * secs / n:.0f}"]
+                )
+            print(f"{storage}: read {t_read:.1f} s, fit {t_fit:.1f} s", file=sys.stderr)
+    table = markdown_table(["storage", "what", "seconds", "frames/s", "x read", "us/frame"], rows)
+    fit_ratio = [float(r[4]) for r in rows if r[1] == "fit"]
+    text = "\n".join(
+        [
+            f"# jointfit fit throughput ({n} frames, 40 markers, two joints)",
+            "",
+            f"Command: `{command}` ({dt.date.today().isoformat()})",
+            "",
+            f"Machine: {machine()}",
+            "",
+            table,
+            "",
+            f"fit / read: {', '.join(f'{x:.2f}' for x in fit_ratio)} (sqlite3, mcap). "
+            "`x read` is each step's time over reading the file alone in the same run.",
+            "",
+        ]
+    )
+    print(text)
+    RESULTS.parent.mkdir(exist_ok=True)
+    RESULTS.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
