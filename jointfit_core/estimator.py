@@ -7,12 +7,14 @@ relative poses over a sliding window (:mod:`jointfit_core.stats`); and
 returns, for every frame, the joint's world position (or axis) carried by the
 current parent pose, with its covariance. :meth:`OnlineJoint.estimate`
 solves the closed forms (:func:`~jointfit_core.segments.centre_from_pose_sums`,
-:func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`) from the sums.
+:func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`) from the sums and
+widens their covariances by the frame-to-frame correlation of the joint
+residual (:mod:`jointfit_core.serial`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -23,7 +25,21 @@ from .checks import check_frame, check_vector3
 from .errors import InputError
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
-from .segments import POSE_VAR_RATIO_MAX, PoseSums, PoseSumsCentre, centre_from_pose_sums
+from .segments import (
+    AXIS_SD_MAX_DEG,
+    POSE_VAR_RATIO_MAX,
+    SD_REL_MAX,
+    PoseSums,
+    PoseSumsCentre,
+    centre_from_pose_sums,
+)
+from .serial import (
+    LagSums,
+    SerialInflation,
+    hinge_residual_pair,
+    lag1_autocorrelation_from_sums,
+    serial_factor,
+)
 from .stats import SlidingSums, WindowSpec, window_spec
 
 __all__ = ["OnlineJoint", "JointOutput", "virtual_markers_template", "CALIBRATION_FORMAT", "CALIBRATION_VERSION"]
@@ -34,9 +50,33 @@ FloatArray = NDArray[np.float64]
 CALIBRATION_FORMAT = "jointfit-calibration"
 CALIBRATION_VERSION = 1
 _KINDS = ("ball", "hinge")
-#: Sums layout: n, S (9), sum_t (3), sum_qt_t (3), sum_tt, vec(Q) vec(Q)^T (81), unit W_p (36),
-#: unit W_c (36), ss_p, dof_p, ss_c, dof_c.
-_N_SUMS = 1 + 9 + 3 + 3 + 1 + 81 + 36 + 36 + 4
+#: Sums layout, with Z = [Q | t] (3 x 4, row-major) the relative pose: n, vec(Z) (12),
+#: vec(Z) vec(Z)^T (144: holds Q (x) Q, Q^T t and |t|^2), unit W_p (36), unit W_c (36),
+#: ss_p, dof_p, ss_c, dof_c, then the lag pair ending at the frame
+#: (:class:`~jointfit_core.serial.LagSums`): n_pairs, Z_k + Z_{k-1} (12), Z_k^T Z_{k-1} (16).
+_Z = slice(1, 13)
+_ZZ = slice(13, 157)
+_W = slice(157, 229)
+_SS = 229
+_LAG = 233
+_N_SUMS = _LAG + 29
+
+
+def _gather_indices() -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """Indices into the sums of ``K = sum kron(Q, Q)`` (9, 9), ``sum Q^T t`` (3, 3: summed over axis 0) and ``|t|^2`` (3).
+
+    ``vec(Z) vec(Z)^T`` holds ``Z_ij Z_kl`` at ``(4 i + j, 4 k + l)``; ``K`` has ``Q_ij Q_kl`` at
+    ``(3 i + k, 3 j + l)``; ``(Q^T t)_j = sum_i Q_ij t_i``; ``|t|^2 = sum_i t_i t_i``.
+    """
+    i, k, j, l = np.meshgrid(range(3), range(3), range(3), range(3), indexing="ij")  # K row (i, k), column (j, l)
+    K = (_ZZ.start + (4 * i + j) * 12 + 4 * k + l).reshape(9, 9)
+    ii, jj = np.meshgrid(range(3), range(3), indexing="ij")
+    qt = _ZZ.start + (4 * ii + jj) * 12 + 4 * ii + 3
+    tt = _ZZ.start + (4 * np.arange(3) + 3) * 13
+    return K, qt, tt
+
+
+_K_IDX, _QT_IDX, _TT_IDX = _gather_indices()
 
 
 @dataclass(frozen=True, eq=False)
@@ -341,6 +381,84 @@ def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple
     return radius * tetra, sigma
 
 
+# --------------------------------------------------------------------------- serial correlation
+
+
+def _max_sd(cov: FloatArray, limit: float) -> float:
+    """Largest standard deviation of ``cov``, or ``sqrt(tr cov)`` (an upper bound) when that is within ``limit``."""
+    bound = float(np.sqrt(max(float(np.trace(cov)), 0.0)))
+    if bound <= limit:
+        return bound
+    return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
+
+
+def _inflated(
+    sol: PoseSumsCentre | PoseSumsAxis, factor: float, rho: float, length_scale: float
+) -> PoseSumsCentre | PoseSumsAxis:
+    """The estimate with its covariances times ``factor``; flagged when they exceed the verdict's limits.
+
+    The limits are the ones the closed forms check (a standard deviation above
+    :data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm, a direction sd
+    above :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`); an estimate already
+    flagged keeps its reason.
+    """
+    why = f"(lag-1 autocorrelation of the joint residual {rho:.3f}: covariance x{factor:.3g})"
+    advice = "record more, and more varied, movement cycles"
+    identifiable, reason = sol.identifiable, sol.reason
+    if isinstance(sol, PoseSumsCentre):
+        cov = factor * sol.cov
+        cov_p, cov_c = cov[:3, :3], cov[3:, 3:]
+        if identifiable:
+            lever = max(float(np.linalg.norm(sol.centre_parent)), float(np.linalg.norm(sol.centre_child)), length_scale)
+            sd = max(_max_sd(cov_p, SD_REL_MAX * lever), _max_sd(cov_c, SD_REL_MAX * lever))
+            if not sd <= SD_REL_MAX * lever:
+                identifiable = False
+                reason = (
+                    f"centre poorly determined: its standard deviation ({sd:.3g}) exceeds {SD_REL_MAX:.0%} of the "
+                    f"lever arm ({lever:.3g}) once the frames' correlation is accounted for {why}; {advice}"
+                )
+        return replace(sol, cov=cov, cov_parent=cov_p, cov_child=cov_c, identifiable=identifiable, reason=reason)
+    cov_dp, cov_dc = factor * sol.cov_direction_parent, factor * sol.cov_direction_child
+    cov_pp, cov_pc = factor * sol.cov_point_parent, factor * sol.cov_point_child
+    if identifiable:
+        dir_max = float(np.deg2rad(AXIS_SD_MAX_DEG))
+        sd_dir = float(np.rad2deg(max(_max_sd(cov_dp, dir_max), _max_sd(cov_dc, dir_max))))
+        lever = max(float(np.linalg.norm(sol.point_parent)), float(np.linalg.norm(sol.point_child)), length_scale)
+        sd_pt = max(_max_sd(cov_pp, SD_REL_MAX * lever), _max_sd(cov_pc, SD_REL_MAX * lever))
+        if not sd_dir <= AXIS_SD_MAX_DEG:
+            identifiable = False
+            reason = (
+                f"axis direction poorly determined (sd {sd_dir:.3g} deg > {AXIS_SD_MAX_DEG:g} deg once the frames' "
+                f"correlation is accounted for {why}): {advice}"
+            )
+        elif not sd_pt <= SD_REL_MAX * lever:
+            identifiable = False
+            reason = (
+                f"axis position poorly determined (sd {sd_pt:.3g} > {SD_REL_MAX:.0%} of the lever arm {lever:.3g} "
+                f"once the frames' correlation is accounted for {why}): {advice}"
+            )
+    return replace(
+        sol,
+        cov_direction_parent=cov_dp,
+        cov_direction_child=cov_dc,
+        cov_point_parent=cov_pp,
+        cov_point_child=cov_pc,
+        identifiable=identifiable,
+        reason=reason,
+    )
+
+
+def _serial_to_dict(serial: SerialInflation) -> dict[str, float | None]:
+    return {k: (None if not np.isfinite(v) else float(v)) for k, v in asdict(serial).items()}
+
+
+def _serial_from_dict(data: Any) -> SerialInflation:
+    if not isinstance(data, dict):
+        raise InputError(f"calibration: serial_inflation: expected a mapping, got {type(data).__name__}")
+    vals = {k: float("nan") if data.get(k) is None else float(data[k]) for k in ("rho", "rho_raw", "factor", "n_pairs")}
+    return SerialInflation(**vals)
+
+
 # --------------------------------------------------------------------------- the estimator
 
 
@@ -378,6 +496,12 @@ class OnlineJoint:
         Fixed marker noise of the parent and the child (input units)
         instead of the residual estimate (None: estimate); needed with
         virtual markers, whose pose fits have no residual.
+    serial_correlation : bool
+        Multiply the estimate's covariances by ``(1 + rho) / (1 - rho)``,
+        ``rho`` the lag-1 autocorrelation of the joint-constraint residual
+        over the window (default True; see Notes). False gives the
+        covariances of the closed forms on the window exactly; ``rho`` is
+        measured and reported (:attr:`serial_inflation`) either way.
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -408,11 +532,49 @@ class OnlineJoint:
     window's sums, with the mean local pose covariances times the current
     noise variances: identical to those functions on the window's frames.
     The weighted (Gauss-Markov) batch fit is about 25 % more precise but
-    needs every frame; model-error inflation is batch-only too.
+    needs every frame.
+
+    **Serial correlation** (``serial_correlation=True``). Those covariances
+    treat the frames as independent. Soft-tissue artefact moves markers
+    smoothly, so the constraint residual ``r_k = c_p - Q_k c_c - t_k`` is
+    correlated from frame to frame (lag-1 autocorrelation 0.95-0.998 on skin
+    markers at 100 Hz) and N frames carry the information of about
+    ``N (1 - rho) / (1 + rho)`` independent ones. The window therefore also
+    keeps, per frame k, the products of its relative pose with that of frame
+    k-1 (:mod:`jointfit_core.serial`), from which
+    ``rho = (sum_pairs r_k . r_{k-1} / n_pairs) / (sum_frames |r_k|^2 / n)``
+    at the estimate (ball: the centres; hinge: the solved axis-point pair,
+    :func:`~jointfit_core.serial.hinge_residual_pair`), clipped to
+    ``[0, RHO_MAX]``; every covariance of the estimate (ball: ``cov``,
+    ``cov_parent``, ``cov_child``; hinge: directions and points) is
+    multiplied by ``(1 + rho) / (1 - rho)``, as
+    :func:`~jointfit_core.model_error.residual_inflation` does for the batch
+    fits. Its ``chi2`` factor is not applied: the sandwich's middle is the
+    residual covariance predicted from the pooled pose-fit noise, which on
+    skin markers already grows with the cluster deformation (right hip
+    fixture: ``sum |r|^2 / ((N - 2) tr W) = 1.09``); artefact that moves a
+    cluster rigidly would not show there. When the factor makes an
+    identifiable estimate's standard deviation exceed the verdict's limits
+    (:data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm,
+    :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`), it is flagged as the
+    batch fits flag it. *Lag pairs*: the pair ``(k-1, k)`` is stored with
+    frame k, and only when frame k-1 is the frame that entered the
+    statistics just before it, with no frame in between that reached the
+    estimator but could not enter them (a segment not posed, or frozen);
+    frames dropped for a non-increasing stamp do not break the chain. A
+    pair leaves the window (or decays) with frame k, so the oldest frame of
+    a window still carries its pair with the frame before it: the window's
+    sums are the batch sums of its frames
+    (:func:`~jointfit_core.segments.pose_sums_from_relative`) and of the
+    pairs ending in them (:func:`~jointfit_core.serial.lag_sums_from_relative`
+    over the window and the frame before it).
 
     **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
     ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise
-    at the centre, ``J = [-[c_p]x, I]``), from the latest :meth:`estimate`.
+    at the centre, ``J = [-[c_p]x, I]``), from the latest :meth:`estimate`
+    (``cov_parent`` with the serial-correlation factor; the pose-noise term
+    without it: the correlation makes the frames' errors alike, it does not
+    make one frame's error larger).
     """
 
     def __init__(
@@ -428,6 +590,7 @@ class OnlineJoint:
         n_markers: tuple[int, int] | None = None,
         templates: tuple[ArrayLike | None, ArrayLike | None] | None = None,
         noise_std: tuple[float | None, float | None] | None = None,
+        serial_correlation: bool = True,
     ) -> None:
         if kind not in _KINDS:
             raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
@@ -477,6 +640,9 @@ class OnlineJoint:
                 raise InputError(f"noise_std: expected finite numbers > 0 (or None), got {noise_std!r}")
         self._noise_arg: tuple[float | None, float | None] = (noise[0], noise[1])
         self._n_markers_arg = n_markers
+        if not isinstance(serial_correlation, (bool, np.bool_)):
+            raise InputError(f"serial_correlation: expected True or False, got {serial_correlation!r}")
+        self.serial_correlation = bool(serial_correlation)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -497,7 +663,16 @@ class OnlineJoint:
         self.n_frames_seen = 0
         self._contribution = np.zeros(_N_SUMS)
         self._contribution[0] = 1.0
-        self._outer_view = self._contribution[17:98].reshape(9, 9)  # a view: written in place
+        # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
+        self._z_view = self._contribution[_Z].reshape(3, 4)
+        self._zf_view = self._contribution[_Z]
+        self._outer_view = self._contribution[_ZZ].reshape(12, 12)
+        self._x_buf = np.zeros((3, 4))  # [R_c | d_c - d_p]
+        self._z_prev = np.zeros((3, 4))  # Z of the previous frame that entered the statistics
+        self._prev_in = False  # whether the previous frame that reached _add entered the statistics
+        self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
+        self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
+        self._serial: SerialInflation | None = None
         self._pairs: dict[bytes, _PairSet] = {}
         self._Y = np.zeros((0, 0, 3))
         self._none_missing: NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
@@ -725,29 +900,39 @@ class OnlineJoint:
         if ps.child is None:
             self._drop("child_not_posed")
         if ps.parent is None and ps.child is None:
+            self._prev_in = False
             return None
         Y = self._Y
         if missing is not self._none_missing:
             Y[missing] = 0.0  # _poses needs zeros where a marker is missing
         R, d, ss = _poses(Y, ps)
         if ps.parent is not None and ps.child is not None and not self._frozen:
-            Rp, dp, Rc, dc = R[0], d[0], R[1], d[1]
             c = self._contribution
-            Q = Rp.T @ Rc
-            t = Rp.T @ (dc - dp)
-            qf = Q.ravel()
-            c[1:10] = qf
-            c[10:13] = t
-            c[13:16] = t @ Q
-            c[16] = t @ t
-            np.multiply.outer(qf, qf, out=self._outer_view)
-            c[98:170] = ps.W_flat
-            c[170:174:2] = ss
-            c[171:174:2] = ps.dof
+            z = self._z_view
+            x = self._x_buf
+            x[:, :3] = R[1]
+            np.subtract(d[1], d[0], out=x[:, 3])
+            np.matmul(R[0].T, x, out=z)  # [Q | t] = R_p^T [R_c | d_c - d_p]
+            zf = self._zf_view
+            np.multiply.outer(zf, zf, out=self._outer_view)
+            c[_W] = ps.W_flat
+            c[_SS : _SS + 4 : 2] = ss
+            c[_SS + 1 : _SS + 4 : 2] = ps.dof
+            # The lag pair (previous frame in the statistics, this one), stored with this frame.
+            if self._prev_in:
+                c[_LAG] = 1.0
+                np.add(z, self._z_prev, out=self._pair_view)
+                np.matmul(z.T, self._z_prev, out=self._cross_view)
+            elif c[_LAG] != 0.0:
+                c[_LAG:] = 0.0
             if self._sums is None:
                 self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
             self._sums.push(c, stamp)
             self._dirty = True
+            self._z_prev[...] = z
+            self._prev_in = True
+        else:
+            self._prev_in = False
         if ps.parent is None or self._solution is None:
             return None
         child_pose = (R[1], d[1]) if ps.child is not None else None
@@ -767,13 +952,34 @@ class OnlineJoint:
             raise InputError(f"no frame has entered the statistics yet ({self.status() or 'no posed frame'})")
         s = self._sums.sums
         n = float(s[0])
-        # The sums hold vec(Q) vec(Q)^T, i.e. Q_ij Q_kl at (i, j, k, l); K = sum kron(Q, Q) at (i, k, j, l).
-        K = s[17:98].reshape(3, 3, 3, 3).transpose(0, 2, 1, 3).reshape(9, 9)
-        sums = PoseSums(n, s[1:10].reshape(3, 3), s[10:13], s[13:16], float(s[16]), K)
-        ssp, dofp, ssc, dofc = s[170:174]
+        Z = s[_Z].reshape(3, 4)
+        sums = PoseSums(n, Z[:, :3], Z[:, 3], s[_QT_IDX].sum(axis=0), float(s[_TT_IDX].sum()), s[_K_IDX])
+        ssp, dofp, ssc, dofc = s[_SS : _SS + 4]
         sigma_p = float(np.sqrt(max(ssp, 0.0) / dofp)) if dofp > 0 else 0.0
         sigma_c = float(np.sqrt(max(ssc, 0.0) / dofc)) if dofc > 0 else 0.0
-        return sums, s[98:134].reshape(6, 6) / n, s[134:170].reshape(6, 6) / n, sigma_p, sigma_c
+        W = s[_W]
+        return sums, W[:36].reshape(6, 6) / n, W[36:].reshape(6, 6) / n, sigma_p, sigma_c
+
+    def lag_sums(self) -> LagSums:
+        """The window's lag-pair sums (:class:`~jointfit_core.serial.LagSums`; see the class Notes).
+
+        Raises
+        ------
+        InputError
+            No frame has entered the statistics yet.
+        """
+        if self._sums is None or self._sums.sums[0] <= 0.0:
+            raise InputError(f"no frame has entered the statistics yet ({self.status() or 'no posed frame'})")
+        return LagSums.from_vector(self._sums.sums[_LAG:])
+
+    @property
+    def serial_inflation(self) -> SerialInflation | None:
+        """The lag-1 correlation of the latest estimate's residual and the factor applied to its covariances.
+
+        None before the first estimate and after :meth:`from_dict` of a
+        calibration saved without it.
+        """
+        return self._serial
 
     def estimate(self) -> PoseSumsCentre | PoseSumsAxis:
         """Solve the window's sums (or return the frozen or still current estimate).
@@ -782,6 +988,8 @@ class OnlineJoint:
         -------
         PoseSumsCentre or PoseSumsAxis
             For ``kind`` "ball" and "hinge"; local frames are the templates'.
+            Covariances include the serial-correlation factor
+            (:attr:`serial_inflation`; see the class Notes).
 
         Raises
         ------
@@ -802,10 +1010,22 @@ class OnlineJoint:
         sol: PoseSumsCentre | PoseSumsAxis
         if self.kind == "ball":
             sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale)
+            c_p, c_c = sol.centre_parent, sol.centre_child
         else:
             sol = axis_from_pose_sums(
                 sums, Wp, Wc, length_scale=scale, reference_direction=self.reference_direction
             )
+            c_p, c_c = hinge_residual_pair(
+                sums, sol.direction_parent, sol.direction_child, sol.point_parent, sol.point_child
+            )
+        lag = self.lag_sums()
+        rho_raw = lag1_autocorrelation_from_sums(sums, lag, c_p, c_c)
+        rho, factor = serial_factor(rho_raw)
+        if not self.serial_correlation:
+            factor = 1.0
+        self._serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs)
+        if factor != 1.0:
+            sol = _inflated(sol, factor, rho, scale)
         self._solution = sol
         self._sigma = (sigma_p, sigma_c)
         self._world_cache = {}
@@ -899,6 +1119,8 @@ class OnlineJoint:
             "noise_std_child": self._sigma[1],
             "noise_std_fixed": [v is not None for v in self._noise_arg],
             "templates_fixed": [v is not None for v in self._templates_arg],
+            "serial_correlation": self.serial_correlation,
+            "serial_inflation": None if self._serial is None else _serial_to_dict(self._serial),
             "estimate": fit,
         }
 
@@ -936,6 +1158,7 @@ class OnlineJoint:
                     float(data[f"noise_std_{side}"]) if fixed else None
                     for side, fixed in zip(("parent", "child"), data.get("noise_std_fixed", [False, False]), strict=True)
                 ),
+                serial_correlation=data.get("serial_correlation", True),  # absent before it existed
             )
             tp = np.array(data["template_parent"], dtype=np.float64)
             tc = np.array(data["template_child"], dtype=np.float64)
@@ -958,6 +1181,8 @@ class OnlineJoint:
             else:
                 est._solution = fit_from_dict(PoseSumsAxis, fit)
             est._sigma = (float(data["noise_std_parent"]), float(data["noise_std_child"]))
+            serial = data.get("serial_inflation")  # absent from calibrations saved before it existed
+            est._serial = None if serial is None else _serial_from_dict(serial)
             est._world_cache = {}
         except InputError:
             raise
