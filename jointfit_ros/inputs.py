@@ -59,6 +59,8 @@ class MessageRouter:
     ----------
     counters : dict of str to int
         ``messages``, ``malformed`` (unparsable or inconsistent messages),
+        ``wrong_frame_id`` (messages whose ``header.frame_id`` is not
+        ``input_frame_id``, when that is set),
         ``label_problems`` (labelled clouds with out-of-range or duplicated
         labels), ``unassigned`` (markers of unlabelled clouds left without a
         point).
@@ -80,7 +82,7 @@ class MessageRouter:
             for source, topic in ((0, r.cfg.parent_pose_topic), (1, r.cfg.child_pose_topic)):
                 if topic:
                     self.pose_topics.setdefault(topic, []).append((r, source))
-        self.counters = {"messages": 0, "malformed": 0, "label_problems": 0, "unassigned": 0}
+        self.counters = {"messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0}
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
         self._last_frame: FloatArray | None = None
@@ -90,9 +92,20 @@ class MessageRouter:
         """Forget the unlabelled-cloud prediction (after a reset of the joints)."""
         self._last_frame = None
 
-    def _problem(self, key: str, text: str) -> None:
-        self.counters["malformed"] += 1
+    def _problem(self, key: str, text: str, counter: str = "malformed") -> None:
+        self.counters[counter] += 1
         self.last_problem = (key, text)
+
+    def _frame_id_ok(self, frame_id: str, topic: str) -> bool:
+        wanted = self.cfg.input_frame_id
+        if not wanted or frame_id == wanted:
+            return True
+        self._problem(
+            f"frame_id:{topic}",
+            f"dropped a message on {topic} in frame {frame_id!r}; input_frame_id is {wanted!r}",
+            "wrong_frame_id",
+        )
+        return False
 
     def frame(self, raw: bytes) -> tuple[int, str, FloatArray] | None:
         """Parse a marker message into ``(stamp_ns, frame_id, frame (P, 3))``; None when dropped."""
@@ -103,6 +116,13 @@ class MessageRouter:
                 msg = parse_pose_array(raw)
             else:
                 msg = parse_pointcloud2(raw, label_field=cfg.label_field or None)
+            if np.isinf(msg.points).any():
+                raise ConversionError("infinite coordinates (NaN marks an occluded marker; inf is corrupt data)")
+            if msg.labels is None and not cfg.unlabelled and msg.points.shape[0] != n:
+                raise ConversionError(
+                    f"{msg.points.shape[0]} points without labels, expected {n} (one per name in marker_names, "
+                    "in order; an occluded marker must be sent as NaN or zeros, not left out)"
+                )
             if msg.labels is not None:
                 problems = label_problems(msg.labels, n)
                 if problems.out_of_range or problems.duplicated:
@@ -117,6 +137,8 @@ class MessageRouter:
                 frame = frame_from_points(msg.points, n, zero_is_missing=cfg.zero_is_missing)
         except ConversionError as exc:
             self._problem("malformed", f"dropped a malformed message on {cfg.marker_topic}: {exc}")
+            return None
+        if not self._frame_id_ok(msg.frame_id, cfg.marker_topic):
             return None
         if cfg.unlabelled:
             # The prediction for the next cloud: the latest position of every marker seen.
@@ -156,6 +178,8 @@ class MessageRouter:
             return []
         if not np.isfinite(msg.position).all():
             self._problem(f"nan:{topic}", f"dropped a pose with a non-finite position on {topic}")
+            return []
+        if not self._frame_id_ok(msg.frame_id, topic):
             return []
         self.frame_id = self.frame_id or msg.frame_id
         out = []

@@ -177,6 +177,7 @@ class JointfitNode(Node):
                 return SetParametersResult(successful=False, reason=str(exc))
         if changes:
             self.cfg = dataclasses.replace(self.cfg, **changes)
+            self.router.cfg = self.cfg
             for runner in self.runners.values():
                 runner.node = self.cfg
                 if runner.matcher is not None:
@@ -286,14 +287,21 @@ class JointfitNode(Node):
         node_values: dict[str, object] = {
             "messages": self.counters["messages"],
             "malformed messages": self.counters["malformed"],
+            "messages from another frame_id": self.counters["wrong_frame_id"],
             "messages with label problems": self.counters["label_problems"],
             "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
             "input frame_id": self.router.frame_id,
         }
-        level = WARN if self.counters["malformed"] or self.counters["label_problems"] else OK
+        problems = ("malformed", "label_problems", "wrong_frame_id")
+        level = WARN if any(self.counters[k] for k in problems) else OK
         message = "receiving" if self.counters["messages"] else f"waiting for {self.cfg.marker_topic}"
         if self.counters["malformed"]:
             message += f"; {self.counters['malformed']} malformed messages dropped"
+        if self.counters["wrong_frame_id"]:
+            message += (
+                f"; {self.counters['wrong_frame_id']} messages from a frame_id other than "
+                f"{self.cfg.input_frame_id!r} dropped"
+            )
         arr.status.append(diagnostic_status("jointfit: input", level, message, node_values))
         for name, runner in self.runners.items():
             st = runner.status()

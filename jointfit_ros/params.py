@@ -136,6 +136,23 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "frame_id of the world outputs; empty: the frame_id of the input messages.",
     ),
     ParamSpec(
+        "input_frame_id",
+        "string",
+        "",
+        "Accept only input messages with this header.frame_id (others are dropped and counted); "
+        "empty: any frame_id.",
+        runtime=True,
+    ),
+    ParamSpec(
+        "units",
+        "string",
+        "m",
+        "Length unit of the inputs (m by REP 103). Only checked: a diagnostic warns when the marker clusters' "
+        "size is implausible for it (e.g. millimetres sent to a node configured for metres).",
+        choices=("m", "cm", "mm"),
+        runtime=True,
+    ),
+    ParamSpec(
         "estimate_period",
         "double",
         0.1,
@@ -298,6 +315,8 @@ class NodeConfig:
     qos_reliability: str
     qos_depth: int
     world_frame: str
+    input_frame_id: str
+    units: str
     estimate_period: float
     local_rate: float
     rviz_rate: float
@@ -458,6 +477,8 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         qos_reliability=v["qos_reliability"],
         qos_depth=v["qos_depth"],
         world_frame=v["world_frame"],
+        input_frame_id=v["input_frame_id"],
+        units=v["units"],
         estimate_period=v["estimate_period"],
         local_rate=v["local_rate"],
         rviz_rate=v["rviz_rate"],

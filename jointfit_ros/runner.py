@@ -40,6 +40,31 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 #: Input stamps kept to measure the input rate.
 _RATE_SAMPLES = 200
 
+#: Metres per unit of the ``units`` parameter.
+_METRES = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+#: Plausible rms radius of a segment's marker cluster (or virtual markers), metres.
+CLUSTER_RADIUS_M = (0.003, 1.0)
+
+
+def unit_problem(rms_radius: float, units: str) -> str:
+    """Why a cluster's rms radius (input units) is implausible for ``units``; empty when plausible.
+
+    A mocap stream in millimetres sent to a node configured for metres (or the
+    reverse) gives clusters 1000 times too large (small): the estimates are then
+    in the wrong unit for every consumer, and the noise settings are off.
+    """
+    if not rms_radius > 0.0 or units not in _METRES:
+        return ""
+    metres = rms_radius * _METRES[units]
+    low, high = CLUSTER_RADIUS_M
+    if low <= metres <= high:
+        return ""
+    guess = min(_METRES, key=lambda u: abs(np.log10(rms_radius * _METRES[u] / 0.05)))
+    return (
+        f"marker clusters are {rms_radius:.3g} {units} in rms radius, implausible for units '{units}' "
+        f"(expected {low:g}-{high:g} m): the stream looks like {guess}; check the driver's units or set units"
+    )
+
 
 @dataclass(frozen=True)
 class Status:
@@ -312,6 +337,13 @@ class JointRunner:
             msg = waiting or self.last_error or "collecting frames"
             return Status(WARN if est.n_frames_seen else STALE, msg, values)
         sigma_p, sigma_c = est.noise_std
+        serial = est.serial_inflation
+        if serial is not None:
+            values["residual lag-1 autocorrelation"] = round(serial.rho_raw, 4)
+            values["covariance inflation (correlation)"] = round(serial.factor, 3)
+        units = unit_problem(est.length_scale, self.node.units)
+        if units:
+            values["unit check"] = units
         values["noise sd parent"] = sigma_p
         values["noise sd child"] = sigma_c
         values["rms residual"] = sol.rms
@@ -331,6 +363,8 @@ class JointRunner:
             values["point_parent"] = np.round(sol.point_parent, 6).tolist()
         if not sol.identifiable:
             return Status(WARN, f"not identifiable: {sol.reason}", values)
+        if units:
+            return Status(WARN, units, values)
         if self.last_error and (self.counters["malformed"] or self.counters["estimate_failures"]):
             return Status(OK, f"{'frozen' if est.frozen else 'estimating'}; last problem: {self.last_error}", values)
         return Status(OK, "frozen" if est.frozen else "estimating", values)

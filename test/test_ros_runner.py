@@ -22,6 +22,7 @@ NAMES = [f"P{i}" for i in range(4)] + [f"C{i}" for i in range(4)]
 def _values(**extra: Any) -> dict[str, Any]:
     values: dict[str, Any] = {
         "joints": ["hip"],
+        "units": "mm",  # the synthetic streams here are in millimetres
         "marker_names": NAMES,
         "hip.parent_markers": NAMES[:4],
         "hip.child_markers": NAMES[4:],
