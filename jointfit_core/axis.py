@@ -14,6 +14,7 @@ from .checks import check_markers, check_noise_std, check_vector3
 from .errors import InputError, NotIdentifiableError
 from .moments import MarkerMoments, central_moments, moments_from_markers
 from .results import AxisFit
+from .sphere import NOISE_SNR_MIN, noise_bound_factor, psd_part, rounding_floor
 
 __all__ = ["fit_axis", "axis_from_moments", "orient_direction", "PLANARITY_MAX", "DIRECTION_SD_MAX_DEG"]
 
@@ -97,7 +98,9 @@ def fit_axis(
     InputError
         Wrong shape, infinite values, all-NaN input or too few samples.
     NotIdentifiableError
-        The markers did not move, or their motion spans less than a plane.
+        The markers did not move, or their motion spans less than a plane
+        (the second eigenvalue of ``A`` within the rounding of the moment
+        sums, :func:`jointfit_core.sphere.rounding_floor`).
 
     Notes
     -----
@@ -122,9 +125,23 @@ def fit_axis(
     ``cov(dA n) = 2 s2 A``, ``cov(dg) = 2 s2 sum_p (rho_p^2 + tau_p^2) A_p``
     and ``cov(dA n, dg) = -2 s2 sum_p tau_p A_p`` (``rho_p`` the circle
     radius, ``tau_p`` the marker plane's offset along the axis from the
-    point). Both covariances scale with ``s2`` and, for a fixed range of
-    motion, as ``1 / N``. ``cov_direction`` has rank 2 (no component along
+    point). ``cov_direction`` takes ``A`` noise-free on the plane,
+    ``A - 2 s2 D I``, its eigenvalues floored at half those of ``A`` (as
+    for the point's compensation); ``cov_point`` takes the observed ``A_p``
+    in all three terms, so that their joint covariance ``sum_p [[1,
+    -tau_p], [-tau_p, rho_p^2 + tau_p^2]] (x) A_p`` is positive
+    semi-definite. Both covariances scale with ``s2`` and, for a fixed range
+    of motion, as ``1 / N``. ``cov_direction`` has rank 2 (no component along
     ``n``).
+
+    **Verdict**: not a hinge when the out-of-plane scatter exceeds
+    :data:`PLANARITY_MAX` of the in-plane spread (or, with ``noise_std``
+    given, :data:`NOISE_RATIO_MAX` times it); range of motion too small when
+    the smaller in-plane eigenvalue of ``A`` does not exceed the noise's
+    share ``2 s2 D`` by ``NOISE_SNR_MIN`` times (``s2`` an upper confidence
+    bound of the estimate, which has ``D - 2`` degrees of freedom, as in
+    :func:`jointfit_core.sphere.fit_centre`), or when the direction's or the
+    point's standard deviation exceeds its limit.
     """
     arr = check_markers(markers, name="markers")
     return axis_from_moments(moments_from_markers(arr), noise_std=noise_std, reference_direction=reference_direction)
@@ -164,9 +181,10 @@ def axis_from_moments(
     a_p = 2.0 * cm.m2
     a_mat = a_p.sum(axis=0)
     lam, vecs = np.linalg.eigh(a_mat)
-    if lam[-1] <= 0.0:
+    floor = rounding_floor(cm)
+    if lam[-1] <= floor or lam[-1] <= 0.0:
         raise NotIdentifiableError("markers: the markers did not move, so the axis is undetermined")
-    if lam[1] <= _SINGULAR_REL * lam[-1]:
+    if lam[1] <= max(_SINGULAR_REL * lam[-1], floor):
         raise NotIdentifiableError(
             "markers: the markers moved along a line only; an axis needs each marker to trace an arc"
         )
@@ -201,21 +219,35 @@ def axis_from_moments(
 
     # Linearised covariances (see Notes).
     a_pinv = (plane / lam_j) @ plane.T
-    a_sig = a_mat - 2.0 * s2_est * dof_total * np.eye(3)
-    a_sig = proj @ a_sig @ proj
-    c11 = 2.0 * s2_est * a_sig
+    # Direction: cov(dA n) = 2 s2 A_sig, A_sig the noise-free in-plane scatter A - 2 s2 D I, its
+    # eigenvalues floored like lam_j (a short, noisy arc can have an in-plane eigenvalue below the
+    # noise estimate; unfloored, the covariance would be indefinite).
+    lam_sig = np.maximum(lam_plane - 2.0 * s2_est * dof_total, _MAX_COMPENSATION * lam_plane)
+    c11 = 2.0 * s2_est * (plane * lam_sig) @ plane.T
+    # Point: the joint covariance of (dA n, dg) is sum_p K_p x A_p with K_p = [[1, -tau_p], [-tau_p,
+    # rho_p^2 + tau_p^2]] (PSD); built from one set of per-marker scatters (the observed ones, as for dg,
+    # rounding negatives clipped) it is PSD, and so is cov_point. Mixing in the compensated A_sig for
+    # the dA n block would break that (its Schur complement can go negative when the noise is large).
+    a_p_psd = psd_part(np.where(used[:, None, None], a_p, 0.0))
+    c11_pt = 2.0 * s2_est * (proj @ a_p_psd.sum(axis=0) @ proj)
     r2_p = np.where(used, np.maximum(rho2, 0.0) + tau * tau, 0.0)
-    c22 = 2.0 * s2_est * np.einsum("p,pij->ij", r2_p, a_p)
-    c12 = -2.0 * s2_est * np.einsum("p,pij->ij", np.where(used, tau, 0.0), a_p)
+    c22 = 2.0 * s2_est * np.einsum("p,pij->ij", r2_p, a_p_psd)
+    c12 = -2.0 * s2_est * np.einsum("p,pij->ij", np.where(used, tau, 0.0), a_p_psd)
     cov_dir = a_pinv @ c11 @ a_pinv
     j1 = np.outer(direction, point_c) @ a_pinv
     j2 = -a_pinv
-    cov_point = j1 @ c11 @ j1.T + j2 @ c22 @ j2.T + j1 @ c12 @ j2.T + j2 @ c12.T @ j1.T
+    cov_point = j1 @ c11_pt @ j1.T + j2 @ c22 @ j2.T + j1 @ c12 @ j2.T + j2 @ c12.T @ j1.T
     cov_dir = 0.5 * (cov_dir + cov_dir.T)
     cov_point = 0.5 * (cov_point + cov_point.T)
 
     sigma_out = float(np.sqrt(s2_est))
-    identifiable, reason = _verdict(lam, cov_dir, cov_point, radii[used], sigma_out, sigma_given)
+    # The in-plane motion is judged against an upper confidence bound of the noise (the estimate has
+    # D - 2 degrees of freedom), at least the stated noise, never below the rounding of A.
+    s2_bound = s2_est * noise_bound_factor(dof_total - 2.0) if s2_est > 0.0 else 0.0
+    if sigma_given is not None:
+        s2_bound = max(s2_bound, sigma_given**2)
+    noise = max(2.0 * s2_bound * dof_total, floor)
+    identifiable, reason = _verdict(lam, cov_dir, cov_point, radii[used], sigma_out, sigma_given, noise)
     return AxisFit(
         point=point_c + centroid_rel + mom.ref,
         direction=direction,
@@ -239,8 +271,13 @@ def _verdict(
     radii: FloatArray,
     sigma_out: float,
     sigma_given: float | None,
+    noise: float,
 ) -> tuple[bool, str]:
-    """Identifiability verdict of an axis fit and a reason a person can act on."""
+    """Identifiability verdict of an axis fit and a reason a person can act on.
+
+    ``noise`` bounds the noise's contribution to each eigenvalue of ``A``
+    (as in :func:`jointfit_core.sphere.centre_from_moments`).
+    """
     if sigma_given is not None and sigma_given > 0 and sigma_out > NOISE_RATIO_MAX * sigma_given:
         return False, (
             f"not a clean hinge: the markers leave their planes of rotation by {sigma_out:.3g} rms, "
@@ -254,6 +291,11 @@ def _verdict(
             f"{planarity:.0%} of the in-plane spread, limit {PLANARITY_MAX:.0%}); either the joint also "
             "rotates about other axes (e.g. pronation, abduction) or the arc is too short for the noise: "
             "flex through a larger range, and check the motion is a hinge"
+        )
+    if lam[1] < (1.0 + NOISE_SNR_MIN) * noise:
+        return False, (
+            "range of motion too small: the markers' arcs are hardly larger than the noise (or, with few "
+            "samples, than what the noise could be); flex the joint through a larger range or record more frames"
         )
     sd_dir = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov_dir)[-1], 0.0))))
     if sd_dir > DIRECTION_SD_MAX_DEG:

@@ -12,7 +12,50 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import InputError
 
-__all__ = ["check_markers", "check_frame", "check_noise_std", "check_vector3", "valid_mask"]
+__all__ = ["as_real_array", "check_markers", "check_frame", "check_noise_std", "check_vector3", "valid_mask"]
+
+
+def as_real_array(value: ArrayLike, *, name: str, expected: str, copy: bool = False) -> NDArray[np.float64]:
+    """Convert ``value`` to a float64 array, rejecting what is not real numbers.
+
+    Parameters
+    ----------
+    value : array_like
+        Anything :func:`numpy.asarray` converts to real numbers (numeric
+        strings included).
+    name : str
+        Name used in error messages.
+    expected : str
+        What was expected, for the error message (e.g. ``"shape (N, P, 3)"``).
+    copy : bool
+        Always return a new array (default: only when the dtype changes).
+
+    Returns
+    -------
+    ndarray, float64
+
+    Raises
+    ------
+    InputError
+        ``value`` is not numeric (ragged, strings, objects) or is complex: a
+        cast would drop the imaginary part (numpy's ``ComplexWarning``), so
+        complex input is refused even when the imaginary part is zero.
+    """
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(
+            f"{name}: expected a numeric array of {expected}, got {type(value).__name__}: {exc}"
+        ) from None
+    if arr.dtype.kind == "c":
+        raise InputError(f"{name}: expected real numbers ({expected}), got complex values ({arr.dtype})")
+    try:
+        with np.errstate(invalid="ignore"):  # a float32 signalling NaN becomes a (quiet) NaN: missing
+            return arr.astype(np.float64, copy=copy)
+    except (TypeError, ValueError) as exc:
+        raise InputError(
+            f"{name}: expected a numeric array of {expected}, got {type(value).__name__}: {exc}"
+        ) from None
 
 
 def check_markers(
@@ -39,13 +82,11 @@ def check_markers(
     Raises
     ------
     InputError
-        Wrong number of dimensions, last axis not 3, too few markers or
-        frames, infinite values, or no valid sample at all.
+        Not real numbers (complex included), wrong number of dimensions,
+        last axis not 3, too few markers or frames, infinite values, or no
+        valid sample at all.
     """
-    try:
-        arr = np.array(markers, dtype=np.float64, copy=True)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected a numeric array of shape (N, P, 3), got {type(markers).__name__}: {exc}") from None
+    arr = as_real_array(markers, name=name, expected="shape (N, P, 3)", copy=True)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise InputError(f"{name}: expected shape (N, P, 3) (frames, markers, xyz), got shape {arr.shape}")
     n_frames, n_markers, _ = arr.shape
@@ -78,12 +119,10 @@ def check_frame(frame: ArrayLike, n_markers: int | None = None, *, name: str = "
     Raises
     ------
     InputError
-        Wrong shape, wrong marker count or infinite values.
+        Not real numbers (complex included), wrong shape, wrong marker
+        count or infinite values.
     """
-    try:
-        arr = np.asarray(frame, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected a numeric array of shape (P, 3), got {type(frame).__name__}: {exc}") from None
+    arr = as_real_array(frame, name=name, expected="shape (P, 3)")
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError(f"{name}: expected shape (P, 3), got shape {arr.shape}")
     if n_markers is not None and arr.shape[0] != n_markers:
@@ -98,9 +137,12 @@ def check_frame(frame: ArrayLike, n_markers: int | None = None, *, name: str = "
 
 
 def check_noise_std(noise_std: float | None) -> float | None:
-    """Return ``noise_std`` as a float (or None) after checking it is finite and >= 0."""
+    """Return ``noise_std`` as a float (or None) after checking it is real, finite and >= 0."""
     if noise_std is None:
         return None
+    dtype = getattr(noise_std, "dtype", None)
+    if isinstance(noise_std, complex) or (isinstance(dtype, np.dtype) and dtype.kind == "c"):
+        raise InputError(f"noise_std: expected None or a real number >= 0, got {noise_std!r}")
     try:
         value = float(noise_std)
     except (TypeError, ValueError):
@@ -111,11 +153,8 @@ def check_noise_std(noise_std: float | None) -> float | None:
 
 
 def check_vector3(vector: ArrayLike, *, name: str, unit: bool = False) -> NDArray[np.float64]:
-    """Return a finite float64 3-vector (normalised when ``unit``)."""
-    try:
-        arr = np.array(vector, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: expected a 3-vector, got {vector!r}") from None
+    """Return a finite, real float64 3-vector (normalised when ``unit``); InputError otherwise."""
+    arr = as_real_array(vector, name=name, expected="a 3-vector", copy=True).reshape(-1)
     if arr.shape != (3,) or not np.isfinite(arr).all():
         raise InputError(f"{name}: expected a finite 3-vector, got {vector!r}")
     if unit:

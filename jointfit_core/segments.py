@@ -247,7 +247,9 @@ def _spd_inv(W: FloatArray) -> FloatArray:
     """Inverse of a batch of symmetric positive definite matrices, never raising.
 
     A plain batched inverse; if any matrix is singular (or the result not
-    finite), eigenvalues below 1e-12 of each matrix's largest are floored there.
+    finite), each matrix is scaled to unit diagonal (so that the floor does
+    not depend on the units of its rows, e.g. radians and lengths) and its
+    eigenvalues below 1e-12 of the largest are floored.
     """
     Ws = 0.5 * (W + np.swapaxes(W, -1, -2))
     try:
@@ -256,22 +258,36 @@ def _spd_inv(W: FloatArray) -> FloatArray:
             return out
     except np.linalg.LinAlgError:
         pass
-    lam, V = np.linalg.eigh(Ws)
+    diag = np.diagonal(Ws, axis1=-2, axis2=-1)
+    d = np.where(diag > 0, 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
+    lam, V = np.linalg.eigh(d[..., :, None] * Ws * d[..., None, :])
     top = np.max(lam, axis=-1, keepdims=True)
     floor = np.where(top > 0, 1e-12 * top, 1.0)
     lam = np.maximum(lam, floor)
     out = (V / lam[..., None, :]) @ np.swapaxes(V, -1, -2)
+    out = d[..., :, None] * out * d[..., None, :]
     return out
 
 
 def _sym_solve(A: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray, float]:
-    """Solve a symmetric system by eigen-decomposition; return (x, A^-1, lam_min / lam_max)."""
+    """Solve a symmetric positive semi-definite system; return (x, A^-1, conditioning).
+
+    The system is first scaled to unit diagonal (Jacobi: ``A_s = D A D``, ``D = diag(A)^-1/2``), so
+    that the conditioning ``lam_min / lam_max`` of ``A_s`` does not depend on the units of the
+    parameters (a normal matrix of angles and lengths changes its plain eigenvalue ratio with the
+    length unit, and a singularity test on it with the unit). ``A^-1 = D A_s^-1 D``; a parameter with
+    a non-positive diagonal (not constrained at all) makes the conditioning 0.
+    """
     A = 0.5 * (A + A.T)
-    lam, V = np.linalg.eigh(A)
+    diag = np.diag(A).copy()
+    if not (np.isfinite(A).all() and (diag > 0.0).all()):
+        return np.zeros_like(b), np.full_like(A, np.nan), 0.0
+    d = 1.0 / np.sqrt(diag)
+    lam, V = np.linalg.eigh(d[:, None] * A * d[None, :])
     top = float(lam[-1])
     ratio = float(lam[0] / top) if top > 0 else 0.0
     safe = np.where(lam > 0, lam, np.inf)
-    inv = (V / safe) @ V.T
+    inv = d[:, None] * ((V / safe) @ V.T) * d[None, :]
     return inv @ b, inv, ratio
 
 

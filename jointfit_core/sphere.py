@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import gammaincinv
 
 from .checks import check_markers, check_noise_std
 from .errors import InputError, NotIdentifiableError
@@ -22,6 +23,11 @@ __all__ = [
     "NOISE_SNR_MIN",
     "SD_REL_MAX",
     "SINGULAR_REL",
+    "NOISE_BOUND_ALPHA",
+    "ROUNDING_ULPS",
+    "noise_bound_factor",
+    "psd_part",
+    "rounding_floor",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -35,6 +41,15 @@ NOISE_SNR_MIN = 3.0
 SD_REL_MAX = 0.1
 #: Eigenvalues of ``A`` below this fraction of the largest count as zero.
 SINGULAR_REL = 1e-10
+#: The verdict judges the motion against an upper confidence bound of the
+#: noise variance (:func:`noise_bound_factor`) that the truth exceeds with
+#: this probability: the residual noise estimate has only ``D - 3`` degrees
+#: of freedom (one, with ``P + 4`` samples), and a chance underestimate must
+#: not make noise look like motion.
+NOISE_BOUND_ALPHA = 1e-3
+#: Eigenvalues of ``A`` within this many units of rounding of the moment
+#: sums (:func:`rounding_floor`) are indistinguishable from zero.
+ROUNDING_ULPS = 8.0
 #: Bias compensation never removes more than this fraction of an eigenvalue.
 _MAX_COMPENSATION = 0.5
 #: Fixed-point iterations between the noise estimate and the compensated centre.
@@ -71,8 +86,10 @@ def fit_centre(markers: ArrayLike, *, noise_std: float | None = None) -> CentreF
         than ``P + 4`` (no residual degree of freedom is left to judge the
         fit).
     NotIdentifiableError
-        The motion cannot determine the centre at all (``A`` is singular:
-        markers that did not move, or noise-free rotation about one axis).
+        The motion cannot determine the centre at all (``A`` is singular,
+        or its smallest eigenvalue is within the rounding of the moment
+        sums, :func:`rounding_floor`: markers that did not move, or
+        noise-free rotation about one axis).
 
     See Also
     --------
@@ -106,9 +123,84 @@ def fit_centre(markers: ArrayLike, *, noise_std: float | None = None) -> CentreF
     ``s2`` and, for a fixed range of motion, as ``1 / N``; it grows as the
     range of motion shrinks (``A`` scales with the square of the arc
     length).
+
+    **Verdict**: each eigenvalue of ``A`` must exceed the noise's share
+    ``2 s2 D`` by :data:`NOISE_SNR_MIN` times, with ``s2`` an upper
+    confidence bound of the residual estimate (``D - 3`` degrees of freedom,
+    :func:`noise_bound_factor`; at least the stated ``noise_std``) and
+    ``2 s2 D`` never below the rounding floor of ``A``, so that few samples
+    or a noise estimate that cancels to zero do not make noise or rounding
+    look like motion. The centre's largest standard deviation must also stay
+    below :data:`SD_REL_MAX` of the median marker radius.
     """
     arr = check_markers(markers, name="markers")
     return centre_from_moments(moments_from_markers(arr), noise_std=noise_std)
+
+
+def psd_part(mats: FloatArray) -> FloatArray:
+    """The positive semi-definite part of symmetric matrices, shape (..., 3, 3): negative eigenvalues set to 0.
+
+    A scatter matrix is PSD, but one computed from shifted raw sums (far from
+    the origin, little motion) can lose its small eigenvalues to cancellation
+    and come out slightly indefinite; the covariances built from it must not.
+    """
+    sym = 0.5 * (mats + np.swapaxes(mats, -1, -2))
+    lam, vecs = np.linalg.eigh(sym)
+    negative = np.asarray((lam < 0.0).any(axis=-1), dtype=bool)
+    if not negative.any():
+        return sym
+    clipped = (vecs * np.maximum(lam, 0.0)[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+    out: FloatArray = np.where(negative[..., None, None], clipped, sym)
+    return out
+
+
+def noise_bound_factor(nu: float) -> float:
+    """Factor from a variance estimate to its upper confidence bound.
+
+    Parameters
+    ----------
+    nu : float
+        Degrees of freedom of the estimate (``s2_hat ~ s2 chi2_nu / nu``).
+
+    Returns
+    -------
+    float
+        ``nu / chi2_nu^-1(NOISE_BOUND_ALPHA)``: ``s2 <= factor * s2_hat`` with
+        probability ``1 - NOISE_BOUND_ALPHA`` (inf for ``nu <= 0``). About
+        6e5 for one degree of freedom, 1.3 for 400, 1 in the limit.
+    """
+    if not nu > 0.0:
+        return float("inf")
+    q = 2.0 * float(gammaincinv(0.5 * nu, NOISE_BOUND_ALPHA))
+    return nu / q if q > 0.0 else float("inf")
+
+
+def rounding_floor(cm: CentralMoments) -> float:
+    """Eigenvalue of ``A = 2 sum_p m2_p`` that rounding of the moment sums alone can produce.
+
+    Parameters
+    ----------
+    cm : CentralMoments
+
+    Returns
+    -------
+    float
+        ``ROUNDING_ULPS * eps * sqrt(n_max) * K`` with ``K = 2 sum_p (tr m2_p
+        + n_p |mean_p - c|^2)`` (c the mean of all samples): the scale of the
+        raw sums about the data's mean from which the central moments are
+        obtained by cancellation, and ``sqrt(n_max)`` for the accumulated
+        rounding of long sums. Noise-free markers that turn about a single
+        axis have a zero eigenvalue that comes out as rounding of about
+        ``eps K``; a real motion of ``theta`` radians gives ``K theta^2``.
+    """
+    n = np.where(cm.used, cm.n, 0.0)
+    total = float(n.sum())
+    if total <= 0.0:
+        return 0.0
+    c = (n[:, None] * cm.mean).sum(axis=0) / total
+    d = cm.mean - c
+    k = 2.0 * float((np.einsum("pii->p", cm.m2) + n * np.einsum("pi,pi->p", d, d))[cm.used].sum())
+    return ROUNDING_ULPS * float(np.finfo(np.float64).eps) * float(np.sqrt(max(float(n.max()), 1.0))) * k
 
 
 def _sphere_residuals(cm: CentralMoments, centre_rel: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -195,7 +287,13 @@ def centre_from_moments(mom: MarkerMoments, *, noise_std: float | None = None) -
     lam, vecs = np.linalg.eigh(a_mat)
     if lam[-1] <= 0.0:
         raise NotIdentifiableError("markers: the markers did not move, so the centre is undetermined")
-    if lam[0] <= SINGULAR_REL * lam[-1]:
+    floor = rounding_floor(cm)
+    if lam[-1] <= floor:
+        raise NotIdentifiableError(
+            "markers: the markers did not move (their motion is at the rounding level of the coordinates), "
+            "so the centre is undetermined"
+        )
+    if lam[0] <= max(SINGULAR_REL * lam[-1], floor):
         raise NotIdentifiableError(_weak_direction_reason(vecs[:, 0], "A is singular"))
 
     centre_plain = vecs @ ((vecs.T @ b_vec) / lam)
@@ -229,10 +327,13 @@ def centre_from_moments(mom: MarkerMoments, *, noise_std: float | None = None) -
     # the estimating equation's noise has variance
     # 4 s2 sum R^2 x x^T + 4 s2^2 sum (R^2 I + (v - m)(v - m)^T); the
     # observed scatter A_p already carries the 4 s2^2 R^2 I part.
+    # Every term is PSD, and so is the covariance, given PSD scatters: those from shifted sums can lose
+    # their small eigenvalues to cancellation (far from the origin, little motion), so they are clipped.
     c = centre_rel[None, :] - cm.mean
+    a_p_psd = psd_part(a_p)
     big_r2 = np.where(used, np.maximum(r2 - 3.0 * s2_est, 0.0), 0.0)
-    meat = 2.0 * s2_est * np.einsum("p,pij->ij", big_r2, a_p)
-    spread = cm.m2.sum(axis=0) + np.einsum("p,pi,pj->ij", cm.n * used, c, c)
+    meat = 2.0 * s2_est * np.einsum("p,pij->ij", big_r2, a_p_psd)
+    spread = 0.5 * a_p_psd.sum(axis=0) + np.einsum("p,pi,pj->ij", cm.n * used, c, c)
     meat = meat + 4.0 * s2_est**2 * spread
     if compensated and sigma_given is None:
         k = -2.0 * (dof_total * centre_rel - dof_mean)
@@ -241,7 +342,15 @@ def centre_from_moments(mom: MarkerMoments, *, noise_std: float | None = None) -
     cov = j_inv @ meat @ j_inv
     cov = 0.5 * (cov + cov.T)
 
-    identifiable, reason = _verdict(lam, vecs, s2_est, dof_total, cov, radii[used])
+    # The verdict's noise: an upper confidence bound of the residual estimate (it has D - 3 degrees of
+    # freedom), at least the stated noise, and never below the rounding of A (a noise estimate that
+    # cancels to zero is not infinite precision).
+    factor = noise_bound_factor(dof_total - 3.0)
+    s2_bound = s2_est * factor if s2_est > 0.0 else 0.0
+    if sigma_given is not None:
+        s2_bound = max(s2_bound, sigma_given**2)
+    noise = max(2.0 * s2_bound * dof_total, floor)
+    identifiable, reason = _verdict(lam, vecs, noise, cov, radii[used])
     return CentreFit(
         centre=centre_rel + mom.ref,
         cov=cov,
@@ -256,10 +365,14 @@ def centre_from_moments(mom: MarkerMoments, *, noise_std: float | None = None) -
 
 
 def _verdict(
-    lam: FloatArray, vecs: FloatArray, s2: float, dof_total: float, cov: FloatArray, radii: FloatArray
+    lam: FloatArray, vecs: FloatArray, noise: float, cov: FloatArray, radii: FloatArray
 ) -> tuple[bool, str]:
-    """Identifiability verdict of a centre fit and a reason a person can act on."""
-    noise = 2.0 * s2 * dof_total
+    """Identifiability verdict of a centre fit and a reason a person can act on.
+
+    ``noise`` bounds the noise's contribution to each eigenvalue of ``A``
+    (``2 s2 D`` with ``s2`` the bound of the noise variance, at least the
+    rounding floor of ``A``).
+    """
     snr = (lam - noise) / noise if noise > 0 else np.full(3, np.inf)
     weak = np.flatnonzero(snr < NOISE_SNR_MIN)
     sd_max = float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))

@@ -88,6 +88,7 @@ _POINTFIELD_TYPES: dict[int, tuple[str, str]] = {
 }
 _FLOAT_TYPES = (7, 8)
 _INT_TYPES = (1, 2, 3, 4, 5, 6)
+_UINT32_MAX = 2**32 - 1
 
 
 class ConversionError(JointfitError, ValueError):
@@ -389,11 +390,15 @@ def _cloud_from_buffer(
             offset=data_offset + fx.offset,
             strides=(row_step, point_step, step),
         )
-        points = xyz.reshape(n, 3).astype(np.float64)
+        # A float32 signalling-NaN payload raises numpy's "invalid value" flag in the cast; it is read
+        # as a NaN (a missing marker) like any other NaN.
+        with np.errstate(invalid="ignore"):
+            points = xyz.reshape(n, 3).astype(np.float64)
     else:
         points = np.empty((n, 3), dtype=np.float64)
-        for k, f in enumerate((fx, fy, fz)):
-            points[:, k] = column(f)
+        with np.errstate(invalid="ignore"):
+            for k, f in enumerate((fx, fy, fz)):
+                points[:, k] = column(f)
     labels = column(by_name[label_field]).astype(np.int64) if label_field is not None else None
     return points, labels
 
@@ -540,13 +545,27 @@ def pose_from_pose_stamped(msg: Any) -> RawPose:
 # --------------------------------------------------------------------------- marker ordering
 
 
-def _check_points(points: ArrayLike, name: str = "points") -> FloatArray:
+def _real_array(value: ArrayLike, name: str, expected: str) -> FloatArray:
+    """``value`` as float64; ConversionError if it is not real numbers (complex would lose its imaginary part)."""
     try:
-        arr = np.asarray(points, dtype=np.float64)
+        arr = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise ConversionError(
-            f"{name}: expected a numeric array of shape (N, 3), got {type(points).__name__}: {exc}"
+            f"{name}: expected a numeric array of {expected}, got {type(value).__name__}: {exc}"
         ) from None
+    if arr.dtype.kind == "c":
+        raise ConversionError(f"{name}: expected real numbers ({expected}), got complex values ({arr.dtype})")
+    try:
+        with np.errstate(invalid="ignore"):  # a float32 signalling NaN becomes a (quiet) NaN: missing
+            return arr.astype(np.float64, copy=False)
+    except (TypeError, ValueError) as exc:
+        raise ConversionError(
+            f"{name}: expected a numeric array of {expected}, got {type(value).__name__}: {exc}"
+        ) from None
+
+
+def _check_points(points: ArrayLike, name: str = "points") -> FloatArray:
+    arr = _real_array(points, name, "shape (N, 3)")
     if arr.ndim == 1 and arr.size == 0:
         arr = arr.reshape(0, 3)
     if arr.ndim != 2 or arr.shape[1] != 3:
@@ -703,8 +722,10 @@ def label_points(
     """
     pts = _check_points(points)
     pred = _check_points(predicted, "predicted")
-    if not (math.isfinite(gate) and gate > 0.0):
+    gate_arr = _real_array(gate, "gate", "a positive finite distance")
+    if gate_arr.shape != () or not (math.isfinite(float(gate_arr)) and float(gate_arr) > 0.0):
         raise ConversionError(f"gate: expected a positive finite distance, got {gate}")
+    gate = float(gate_arr)
     out = np.full(pred.shape, np.nan)
     pts_ok = np.isfinite(pts).all(axis=1)
     if zero_is_missing:
@@ -797,7 +818,8 @@ def pointcloud2_bytes(
     points : array_like, shape (N, 3)
         Positions (NaN allowed; ``is_dense`` is then False).
     labels : array_like of int, shape (N,), optional
-        Non-negative labels, written as a UINT32 field ``label`` after z.
+        Labels in [0, 2**32 - 1], written as a UINT32 field ``label`` after
+        z; anything else (negative, too large, not integers) raises.
     dtype : float32 or float64
         Type of the x, y, z fields. Default float32 (as most mocap drivers).
     big_endian : bool
@@ -809,11 +831,25 @@ def pointcloud2_bytes(
         Ready for ``Publisher.publish``. Fields x, y, z at offsets 0, s, 2s
         (s = 4 or 8), then ``label`` if given; ``point_step`` is the sum of
         their sizes, ``row_step = width * point_step``.
+
+    Raises
+    ------
+    ConversionError
+        Bad shapes, complex or non-numeric points, a finite coordinate
+        beyond the float32 range with ``dtype=float32``, bad labels, a
+        stamp outside int32 seconds.
     """
     pts = _check_points(points)
     ftype = np.dtype(dtype)
     if ftype not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise ConversionError(f"dtype: expected float32 or float64, got {ftype}")
+    if ftype == np.dtype(np.float32):
+        finite = pts[np.isfinite(pts)]
+        if finite.size and float(np.abs(finite).max()) > float(np.finfo(np.float32).max):
+            raise ConversionError(
+                f"points: a coordinate ({float(np.abs(finite).max()):.6g} in magnitude) exceeds the float32 "
+                "range; write the cloud with dtype=float64"
+            )
     prefix = ">" if big_endian else "<"
     size = ftype.itemsize
     n = pts.shape[0]
@@ -827,14 +863,20 @@ def pointcloud2_bytes(
     lab = None
     if labels is not None:
         lab = _check_labels(labels, n)
-        if n and lab.min() < 0:
-            raise ConversionError("labels: expected non-negative integers for a UINT32 field")
+        # range-check the given integers (before any cast: int64 -> uint32, or uint64 -> int64, would wrap)
+        given = np.asarray(labels)
+        if n and (int(given.min()) < 0 or int(given.max()) > _UINT32_MAX):
+            raise ConversionError(
+                f"labels: expected integers in [0, {_UINT32_MAX}] for a UINT32 field, got values in "
+                f"[{int(given.min())}, {int(given.max())}]"
+            )
         names.append("label")
         formats.append(prefix + "u4")
         field_specs.append(("label", 3 * size, 6))
     rec = np.dtype({"names": names, "formats": formats})
     data = np.empty(n, dtype=rec)
-    data["x"], data["y"], data["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    with np.errstate(invalid="ignore"):  # a signalling NaN stays a NaN (missing) in float32, quietly
+        data["x"], data["y"], data["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
     if lab is not None:
         data["label"] = lab
     point_step = rec.itemsize
@@ -877,7 +919,7 @@ def rotation_matrix_from_quaternion(xyzw: ArrayLike) -> FloatArray:
     ConversionError
         Wrong shape, non-finite values, or a (near) zero quaternion.
     """
-    q = np.asarray(xyzw, dtype=np.float64)
+    q = _real_array(xyzw, "quaternion", "shape (4,)")
     if q.shape != (4,):
         raise ConversionError(f"quaternion: expected shape (4,) as (x, y, z, w), got shape {q.shape}")
     norm = float(np.linalg.norm(q))
@@ -895,7 +937,7 @@ def rotation_matrix_from_quaternion(xyzw: ArrayLike) -> FloatArray:
 
 def quaternion_from_rotation_matrix(R: ArrayLike) -> FloatArray:
     """Unit quaternion (x, y, z, w), w >= 0, of a proper rotation matrix, shape (3, 3) -> (4,)."""
-    mat = np.asarray(R, dtype=np.float64)
+    mat = _real_array(R, "R", "shape (3, 3)")
     if mat.shape != (3, 3):
         raise ConversionError(f"R: expected shape (3, 3), got shape {mat.shape}")
     q: FloatArray = Rotation.from_matrix(mat).as_quat()
@@ -903,7 +945,7 @@ def quaternion_from_rotation_matrix(R: ArrayLike) -> FloatArray:
 
 
 def _unit(v: ArrayLike, name: str) -> FloatArray:
-    arr = np.asarray(v, dtype=np.float64)
+    arr = _real_array(v, name, "shape (3,)")
     if arr.shape != (3,):
         raise ConversionError(f"{name}: expected shape (3,), got shape {arr.shape}")
     norm = float(np.linalg.norm(arr))

@@ -6,6 +6,9 @@ classes work without a context.
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped, PoseWithCovarianceStamped
@@ -284,6 +287,83 @@ def test_pointcloud2_bytes_round_trip(big_endian: bool, dtype: type, with_labels
         assert [f.name for f in msg.fields] == ["x", "y", "z"] + (["label"] if with_labels else [])
         again = points_from_pointcloud2(msg, label_field="label" if with_labels else None)
         np.testing.assert_array_equal(again.points, expected)
+
+
+@pytest.mark.parametrize(
+    "labels",
+    [
+        np.array([2**32 + 5, 1]),
+        np.array([2**32, 0], dtype=np.uint64),
+        np.array([2**63 + 1, 0], dtype=np.uint64),
+        np.array([-1, 0]),
+        np.array([0.0, 1.0]),
+        np.array([True, False]),
+        np.array([1 + 0j, 0j]),
+        [0, 1, 2],
+    ],
+)
+def test_pointcloud2_bytes_rejects_labels_outside_uint32(labels: object) -> None:
+    """Regression: labels were cast to UINT32 unchecked, so 2**32 + 5 was written (and read back) as 5."""
+    with pytest.raises(ConversionError, match="labels"):
+        pointcloud2_bytes(0, "world", np.ones((2, 3)), labels=labels)  # type: ignore[arg-type]
+    top = np.array([2**32 - 1, 0], dtype=np.uint64)
+    parsed = parse_pointcloud2(pointcloud2_bytes(0, "world", np.ones((2, 3)), labels=top), label_field="label")
+    assert parsed.labels is not None and parsed.labels.tolist() == [2**32 - 1, 0]
+
+
+def test_float32_signalling_nan_reads_as_nan_without_warning() -> None:
+    """Regression: the FLOAT32 -> float64 cast of a signalling-NaN payload raised numpy's RuntimeWarning."""
+    snan32 = np.array([0x7FA00000], dtype=np.uint32).view(np.float32)[0]
+    snan64 = np.array([0x7FF4000000000000], dtype=np.uint64).view(np.float64)[0]
+    for big_endian in (False, True):
+        raw = pointcloud2_bytes(0, "world", np.zeros((2, 3)), big_endian=big_endian)
+        data_end = len(raw) - 1  # the is_dense byte follows the data
+        patched = bytearray(raw)
+        patched[data_end - 12 : data_end - 8] = np.array([0x7FA00000], dtype=">u4" if big_endian else "<u4").tobytes()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            parsed = parse_pointcloud2(bytes(patched))
+            msg = None if big_endian else deserialize_message(bytes(patched), PointCloud2)
+            msg_points = None if msg is None else points_from_pointcloud2(msg).points
+            written = parse_pointcloud2(
+                pointcloud2_bytes(0, "w", np.array([[snan64, 1.0, 2.0]]), big_endian=big_endian)
+            )
+            from_f32 = pointcloud2_bytes(0, "w", np.array([[snan32, 1.0, 2.0]], dtype=np.float32))
+        assert np.isnan(parsed.points[1, 0]) and np.count_nonzero(np.isnan(parsed.points)) == 1
+        if msg_points is not None:
+            assert np.isnan(msg_points[1, 0]) and np.count_nonzero(np.isnan(msg_points)) == 1
+        assert np.isnan(written.points[0, 0]) and written.points[0, 1:].tolist() == [1.0, 2.0]
+        assert np.isnan(parse_pointcloud2(from_f32).points[0, 0])
+
+
+def test_pointcloud2_bytes_rejects_values_beyond_float32() -> None:
+    """A finite coordinate float32 cannot hold is an error, not an inf (and not a RuntimeWarning)."""
+    with pytest.raises(ConversionError, match="float32"):
+        pointcloud2_bytes(0, "world", np.array([[0.0, -1e39, 0.0]]))
+    raw = pointcloud2_bytes(0, "world", np.array([[0.0, -1e39, np.inf]]), dtype=np.float64)
+    assert parse_pointcloud2(raw).points.tolist() == [[0.0, -1e39, np.inf]]
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda z: frame_from_points(z, 4),
+        lambda z: frame_from_points([[1 + 0j, 2, 3]], 4),
+        lambda z: label_points(z, z.real, 1.0),
+        lambda z: label_points(z.real, z.real, 1.0 + 0j),  # type: ignore[arg-type]
+        lambda z: pose_array_bytes(0, "world", z),
+        lambda z: pointcloud2_bytes(0, "world", z),
+        lambda z: rotation_matrix_from_quaternion(np.array([0, 0, 0, 1 + 0j])),
+        lambda z: quaternion_z_to_direction(z[0]),
+    ],
+)
+def test_complex_input_raises_conversion_error(call: Callable[[np.ndarray], object]) -> None:
+    """Regression: complex points were cast with numpy's ComplexWarning, dropping the imaginary part."""
+    points = np.arange(12.0).reshape(4, 3) + 0j
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ConversionError, match=r"complex|real"):
+            call(points)
 
 
 # --------------------------------------------------------------------------- malformed input

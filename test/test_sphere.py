@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import itertools
+import warnings
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from helpers import mahalanobis, mc_band, random_rigid, transform
+from scipy.spatial.transform import Rotation
 
 from jointfit_core import InputError, NotIdentifiableError, fit_centre
-from jointfit_core.synthetic import gl_axis_setup, gl_random_walk_setup
+from jointfit_core.online import OnlineCentre
+from jointfit_core.sphere import noise_bound_factor, psd_part
+from jointfit_core.synthetic import GL_CENTRE_MARKERS, gl_axis_setup, gl_random_walk_setup
 
 
 def naive_gl_centre(markers: np.ndarray) -> np.ndarray:
@@ -195,3 +202,119 @@ def test_result_is_frozen() -> None:
         fit.centre[0] = 0.0
     with pytest.raises(AttributeError):
         fit.rms = 0.0  # type: ignore[misc]
+
+
+def test_static_noisy_marker_is_not_identifiable() -> None:
+    """One static marker with 1 mm jitter, 5 frames (P + 4 samples: one residual degree of freedom).
+
+    Regression: the verdict trusted the one-dof noise estimate; by chance it is tiny, and noise looked
+    like motion (about 1 in 8 such recordings came back identifiable). It now judges the motion against
+    an upper confidence bound of the noise.
+    """
+    markers = np.array(
+        [[[69.3, -10.2, 51.7]], [[70.7, -11.6, 50.0]], [[69.4, -9.9, 48.4]], [[70.2, -9.8, 51.6]], [[70.3, -9.5, 48.5]]]
+    )
+    fit = fit_centre(markers)
+    assert not fit.identifiable and "range of motion" in fit.reason
+    assert fit.noise_std < 0.1  # the estimate itself is (by chance) tiny; the verdict does not trust it
+    online = OnlineCentre(window=5)
+    for frame in markers:
+        online.update(frame)
+    assert not online.estimate().identifiable
+    rng = np.random.default_rng(7)
+    for n_markers, n_frames in ((1, 5), (2, 3), (1, 8)):
+        for _ in range(100):
+            static = gl_random_walk_setup(rng, 0.0).clean[:1, :n_markers] + rng.normal(0, 1, (n_frames, n_markers, 3))
+            try:
+                assert not fit_centre(static).identifiable
+            except NotIdentifiableError:
+                pass
+
+
+def test_noise_bound_factor() -> None:
+    assert noise_bound_factor(1.0) > 1e5  # one degree of freedom bounds almost nothing
+    assert noise_bound_factor(0.0) == np.inf
+    factors = [noise_bound_factor(nu) for nu in (1.0, 3.0, 10.0, 100.0, 1e4)]
+    assert all(a > b > 1.0 for a, b in itertools.pairwise(factors))
+    assert noise_bound_factor(1e6) == pytest.approx(1.0, abs=0.01)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e3])
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_single_axis_rotation_at_the_rounding_level_is_not_identifiable(scale: float, offset: float) -> None:
+    """Noise-free turns about one axis through a tiny range: A's zero eigenvalue comes out as rounding.
+
+    Regression: it sat just above SINGULAR_REL * lam_max and the noise estimate cancelled to 0, so the
+    fit was called identifiable with cov = 0. A motion of 1e-3 rad about a second axis is identifiable.
+    """
+    k = np.arange(20)
+    for step in (1e-4, 1e-6):
+        rot = Rotation.from_rotvec(np.outer(step * k, [0.3, -0.5, 0.8])).as_matrix()
+        markers = np.einsum("nij,pj->npi", rot, GL_CENTRE_MARKERS * scale) + offset
+        try:
+            fit = fit_centre(markers)
+        except NotIdentifiableError as exc:
+            assert "single axis" in str(exc) or "did not move" in str(exc)
+            continue
+        assert not fit.identifiable and "single axis" in fit.reason
+    rotvec = np.outer(1e-2 * k, [0.0, 0.0, 1.0]) + np.outer(1e-3 * np.sin(k), [1.0, 0.0, 0.0])
+    markers = np.einsum("nij,pj->npi", Rotation.from_rotvec(rotvec).as_matrix(), GL_CENTRE_MARKERS * scale)
+    fit = fit_centre(markers + offset)
+    assert fit.identifiable, fit.reason
+    np.testing.assert_allclose(fit.centre, offset, atol=1e-7 * scale + 1e-12 * offset)
+
+
+def test_flagged_fits_have_psd_covariances() -> None:
+    """Short, noisy, nearly static or single-axis recordings far from the origin: cov stays PSD."""
+    rng = np.random.default_rng(21)
+    for _ in range(200):
+        setup = gl_axis_setup if rng.random() < 0.5 else gl_random_walk_setup
+        sim = setup(rng, float(rng.choice([0.0, 0.01, 1.0])), n_frames=int(rng.integers(3, 12)), step_deg=0.05)
+        markers = sim.markers + rng.choice([0.0, 1e4, 1e6])
+        try:
+            fit = fit_centre(markers)
+        except (InputError, NotIdentifiableError):
+            continue
+        lam = np.linalg.eigvalsh(fit.cov)
+        assert lam[0] >= -1e-12 * max(lam[-1], 1e-300), lam
+
+
+def test_psd_part_clips_rounding_negatives() -> None:
+    rng = np.random.default_rng(3)
+    vecs = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    mats = np.stack([(vecs * lam) @ vecs.T for lam in ([2.0, 1.0, -1e-9], [3.0, 2.0, 1.0])])
+    out = psd_part(mats)
+    np.testing.assert_allclose(out[0], (vecs * [2.0, 1.0, 0.0]) @ vecs.T, atol=1e-12)
+    np.testing.assert_array_equal(out[1], 0.5 * (mats[1] + mats[1].T))
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda m: fit_centre(m + 0j),
+        lambda m: fit_centre((m + 1j).tolist()),
+        lambda m: fit_centre(m, noise_std=np.complex128(1.0)),  # type: ignore[arg-type]
+        lambda m: fit_centre(m, noise_std=1.0 + 0j),  # type: ignore[arg-type]
+        lambda m: OnlineCentre(window=5).update(m[0] + 0j),
+    ],
+)
+def test_complex_input_is_rejected(call: Callable[[np.ndarray], object]) -> None:
+    """Regression: complex input was cast with numpy's ComplexWarning (the imaginary part dropped)."""
+    markers = gl_random_walk_setup(np.random.default_rng(0), 1.0, n_frames=20).markers
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=r"complex|real"):
+            call(markers)
+
+
+def test_float32_signalling_nan_is_missing() -> None:
+    """A float32 signalling NaN (a cast raises numpy's 'invalid' flag) is a missing marker, quietly."""
+    markers = gl_random_walk_setup(np.random.default_rng(0), 1.0, n_frames=20).markers.astype(np.float32)
+    markers[3, 1, 0] = np.array([0x7FA00000], dtype=np.uint32).view(np.float32)[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = fit_centre(markers)
+    quiet = markers.copy()
+    quiet[3, 1, 0] = np.nan
+    assert fit.n_frames == 20
+    np.testing.assert_array_equal(fit.centre, fit_centre(quiet).centre)
