@@ -11,7 +11,7 @@ BENCH_STAMP := $(VENV)/.bench-installed
 ROS_DOMAIN_ID ?= 42
 ROS_ENV := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID=$(ROS_DOMAIN_ID)
 
-.PHONY: venv lint test demo demo-offline bench clean
+.PHONY: venv lint test demo demo-offline bench soak clean
 
 venv: $(STAMP)
 
@@ -46,10 +46,14 @@ $(BENCH_STAMP): $(STAMP) requirements-bench.txt
 bench: venv $(BENCH_STAMP)
 	shopt -s nullglob; \
 	for f in bench/*.py; do \
-		case "$$(basename "$$f")" in _*) continue ;; esac; \
+		case "$$(basename "$$f")" in _*|soak.py) continue ;; esac; \
 		echo "== $$f"; \
 		$(ROS_ENV) $(BIN)/python "$$f" || exit 1; \
 	done
+
+# An hour of 500 Hz data through the node in accelerated time (~20-30 min): bench/results/soak.md.
+soak: venv
+	$(ROS_ENV) $(BIN)/python bench/soak.py
 
 clean:
 	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache .hypothesis build *.egg-info
