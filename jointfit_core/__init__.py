@@ -38,4 +38,25 @@ __all__ = [
     "fit_centre_two_segments",
     "moments_from_markers",
 ]
+
+from .chain import ChainJoint, fit_chain, leg_chain_spec, virtual_markers
+from .identifiability import Identifiability, check_marker_counts, marker_count_identifiability
+from .minimal import fit_axis_minimal, fit_centre_minimal, r21_closed_form, s22_closed_form
+from .results import MinimalAxisFit, MinimalCentreFit
+
+__all__ += [
+    "ChainJoint",
+    "Identifiability",
+    "MinimalAxisFit",
+    "MinimalCentreFit",
+    "check_marker_counts",
+    "fit_axis_minimal",
+    "fit_centre_minimal",
+    "fit_chain",
+    "leg_chain_spec",
+    "marker_count_identifiability",
+    "r21_closed_form",
+    "s22_closed_form",
+    "virtual_markers",
+]
 __version__ = "0.1.0"

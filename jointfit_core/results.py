@@ -216,3 +216,141 @@ class SegmentsAxisFit(_Frozen):
     reason: str
     noise_std_parent: float
     noise_std_child: float
+
+
+__all__ += ["MinimalCentreFit", "MinimalAxisFit"]
+
+
+@dataclass(frozen=True, eq=False)
+class MinimalCentreFit(_Frozen):
+    """Ball joint from a minimal marker set (Pham et al.: S22, S31).
+
+    No link needs a full frame, so the estimate is a set of constant
+    distances plus the per-frame centre in the world.
+
+    Attributes
+    ----------
+    distances : ndarray, shape (p + q,)
+        Constant distance of the centre from each marker, parent markers
+        first, then child markers (input units).
+    cov : ndarray, shape (p + q, p + q)
+        Covariance of ``distances`` (input units squared).
+    centre_parent : ndarray, shape (2,)
+        The centre in the parent *pair frame*: ``(axial, radial)``, the
+        coordinate along the line from parent marker 0 towards parent marker
+        1 (origin at marker 0) and the distance from that line -- the
+        paper's ``(d, r)``. NaN when the parent has a single marker.
+    cov_parent : ndarray, shape (2, 2)
+        Its covariance.
+    centre_child, cov_child : ndarray, shape (2,) and (2, 2)
+        The same for the child's markers 0 and 1.
+    centre_world : ndarray, shape (N, 3)
+        The centre per frame, world frame of the input markers; NaN in frames
+        that were not used (a marker missing).
+    cov_world : ndarray, shape (N, 3, 3)
+        Its covariance per frame (that frame's marker noise plus the
+        constants' uncertainty).
+    residual : ndarray, shape (N,)
+        Per frame, the norm of the distance residuals ``|J_t - X_k| - a_k``
+        at the fitted centre (input units); NaN where not used.
+    rms : float
+        Rms of ``residual`` over the frames used.
+    n_frames : int
+        Number of frames used.
+    identifiable : bool
+        False when the data do not determine the centre well.
+    reason : str
+        Why not and what to do; empty when identifiable.
+    noise_std : float
+        Marker noise standard deviation per coordinate used for the
+        covariance (input units): the larger of the residual estimate and the
+        estimate from the spread of the intra-link marker distances.
+    method : str
+        ``"S22"`` (2 + 2 markers) or ``"S31"`` (a link with 3 or more).
+    """
+
+    distances: FloatArray
+    cov: FloatArray
+    centre_parent: FloatArray
+    cov_parent: FloatArray
+    centre_child: FloatArray
+    cov_child: FloatArray
+    centre_world: FloatArray
+    cov_world: FloatArray
+    residual: FloatArray
+    rms: float
+    n_frames: int
+    identifiable: bool
+    reason: str
+    noise_std: float
+    method: str
+
+
+@dataclass(frozen=True, eq=False)
+class MinimalAxisFit(_Frozen):
+    """Hinge from a minimal marker set (Pham et al.: R21).
+
+    Attributes
+    ----------
+    radii : ndarray, shape (p + q,)
+        Constant distance of each marker from the axis, parent markers first
+        (input units).
+    offsets : ndarray, shape (p + q - 1,)
+        Constant axial position of markers 1, 2, ... relative to marker 0
+        (parent marker 0), along ``direction_world`` (input units).
+    cov : ndarray, shape (2 (p + q) - 1, 2 (p + q) - 1)
+        Covariance of ``concatenate([radii, offsets])``.
+    dh : ndarray, shape (5,)
+        The paper's Denavit-Hartenberg constants ``(d, r, alpha, l, rho)``
+        relative to the link with two markers (the *pair*; its marker 0 is
+        the origin and the axial direction points to its marker 1) and the
+        first marker of the other link: the common perpendicular from the
+        pair line to the hinge starts at axial coordinate ``d`` and has
+        length ``r``; ``alpha`` (rad) is the twist from the pair line to the
+        hinge about that perpendicular (its sign is the handedness that the
+        mirror-image solution flips); ``l`` is the axial position on the
+        hinge of the centre of the single marker's circle, ``rho`` its
+        radius. Lengths in input units.
+    cov_dh : ndarray, shape (5, 5)
+        Its covariance.
+    point_world : ndarray, shape (N, 3)
+        Per frame, the centre of the circle traced by the single marker (the
+        point of the axis nearest it), world frame; NaN where not used.
+    direction_world : ndarray, shape (N, 3)
+        Per frame, the unit axis direction (world); the sign is consistent
+        across frames (``offsets`` are measured along it).
+    cov_point_world : ndarray, shape (N, 3, 3)
+        Covariance of ``point_world`` per frame.
+    cov_direction_world : ndarray, shape (N, 3, 3)
+        Covariance of ``direction_world`` per frame (rank 2, radians squared
+        for small angles).
+    residual : ndarray, shape (N,)
+        Per frame, the norm of the whitened constant-model residuals at the
+        fitted axis (input units); NaN where not used.
+    rms, n_frames, identifiable, reason, noise_std
+        As in :class:`MinimalCentreFit`.
+    n_solutions : int
+        Number of geometrically distinct hinges that fit the data equally
+        well (1 when unique; 4 is typical for 2 + 1 markers, see
+        :func:`jointfit_core.fit_axis_minimal`).
+    method : str
+        ``"R21"``.
+    """
+
+    radii: FloatArray
+    offsets: FloatArray
+    cov: FloatArray
+    dh: FloatArray
+    cov_dh: FloatArray
+    point_world: FloatArray
+    direction_world: FloatArray
+    cov_point_world: FloatArray
+    cov_direction_world: FloatArray
+    residual: FloatArray
+    rms: float
+    n_frames: int
+    identifiable: bool
+    reason: str
+    noise_std: float
+    n_solutions: int
+    method: str

@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from .checks import check_markers, check_vector3
 from .errors import InputError, NotIdentifiableError
+from .identifiability import check_marker_counts
 from .model_error import Inflation, residual_inflation
 from .pose import (
     Poses,
@@ -617,20 +618,37 @@ class _Prepared:
             float(np.sqrt(np.mean(np.sum(self.template_child**2, axis=1)))),
         )
 
+    @property
+    def noisy(self) -> bool:
+        """Whether the marker noise estimates are above the rounding of the coordinates.
 
-def _check_segment(markers: ArrayLike, name: str) -> FloatArray:
-    arr = check_markers(markers, name=name)
+        Noise-free data give sigmas of float64 rounding (eps times the largest
+        coordinate); weights built from them are arbitrary, so the weighted
+        fits fall back to the unweighted solution (found by the unit-change
+        property test: the weighted hinge moved when the data were scaled).
+        """
+        big = max(float(np.nanmax(np.abs(self.markers_parent))), float(np.nanmax(np.abs(self.markers_child))))
+        floor = 1e3 * np.finfo(np.float64).eps * big
+        return self.sigma_parent > floor or self.sigma_child > floor
+
+
+def _check_segment(arr: FloatArray, name: str, kind: str) -> FloatArray:
     if arr.shape[1] < 3:
+        fit = "fit_centre_minimal (ball: 2 + 2 or 3 + 1)" if kind == "ball" else "fit_axis_minimal (hinge: 2 + 1)"
         raise InputError(
             f"{name}: expected at least 3 markers per segment for the pose-based two-segment methods, got "
-            f"{arr.shape[1]}; joints from fewer markers per segment (minimal marker sets) are a separate feature"
+            f"{arr.shape[1]}; these marker counts identify the joint with the minimal-marker methods: use {fit}"
         )
     return arr
 
 
-def _prepare(parent: ArrayLike, child: ArrayLike) -> _Prepared:
-    yp = _check_segment(parent, "parent")
-    yc = _check_segment(child, "child")
+def _prepare(parent: ArrayLike, child: ArrayLike, kind: str) -> _Prepared:
+    yp = check_markers(parent, name="parent")
+    yc = check_markers(child, name="child")
+    # Marker counts that cannot identify the joint at all (Pham et al., sections III-IV) raise with the reason.
+    check_marker_counts(kind, yp.shape[1], yc.shape[1])
+    yp = _check_segment(yp, "parent", kind)
+    yc = _check_segment(yc, "child", kind)
     if yp.shape[0] != yc.shape[0]:
         raise InputError(
             f"parent, child: expected the same number of frames, got {yp.shape[0]} (parent) and {yc.shape[0]} (child)"
@@ -996,7 +1014,7 @@ def fit_centre_two_segments(
     """
     if method not in _METHODS:
         raise InputError(f"method: expected one of {_METHODS}, got {method!r}")
-    prep = _prepare(parent, child)
+    prep = _prepare(parent, child, "ball")
     used = prep.both
     Q, t = prep.Q[used], prep.t[used]
     n = float(used.sum())
@@ -1015,7 +1033,7 @@ def fit_centre_two_segments(
     )
     a = np.concatenate([closed.centre_parent, closed.centre_child])
     cov = closed.cov
-    if weighted and (prep.sigma_parent > 0.0 or prep.sigma_child > 0.0):
+    if weighted and prep.noisy:
         noise_p = pose_noise_local(prep.template_parent, prep.sigma_parent, vis_p)
         noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
         a, cov = _gauss_markov_centre(Q, t, noise_p, noise_c, Wp6, Wc6, a)
@@ -1334,7 +1352,7 @@ def fit_axis_two_segments(
     ``residual`` is the distance of the parent-carried axis point from the
     child-carried axis line.
     """
-    prep = _prepare(parent, child)
+    prep = _prepare(parent, child, "hinge")
     used = prep.both
     Q, t = prep.Q[used], prep.t[used]
     n = float(used.sum())
@@ -1368,7 +1386,7 @@ def fit_axis_two_segments(
     Wc6 = pose_covariance_local(prep.template_child, prep.sigma_child, vis_c)
     noise_p = pose_noise_local(prep.template_parent, prep.sigma_parent, vis_p)
     noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
-    use_weights = weighted and (prep.sigma_parent > 0.0 or prep.sigma_child > 0.0)
+    use_weights = weighted and prep.noisy
     st, cov, (Bp, Bc, Z) = _hinge_solve(Q, t, st, noise_p, noise_c, Wp6, Wc6, use_weights)
     n_p, n_c = st.n_p, st.n_c
     if n_p @ ref < 0.0:  # cannot flip in a few small steps, but keep the promise

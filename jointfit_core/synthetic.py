@@ -257,3 +257,182 @@ def two_segment_motion(
         freq=freq,
         offset=np.asarray(offset, dtype=np.float64),
     )
+
+
+__all__ += ["minimal_marker_motion", "LegChainMotion", "leg_chain_motion"]
+
+
+def minimal_marker_motion(
+    rng: np.random.Generator,
+    *,
+    kind: str = "ball",
+    n_markers: tuple[int, int] = (2, 2),
+    spread: tuple[float, float] = (300.0, 300.0),
+    lever: tuple[float, float] = (300.0, 300.0),
+    cycle_s: float = 20.0,
+    offset: ArrayLike = (100.0, 200.0, 900.0),
+) -> TwoSegmentMotion:
+    """A two-segment rig with few, widely spread markers per link (minimal marker sets).
+
+    Like :func:`two_segment_motion` (same motion model: the parent wanders,
+    the child rotates about the joint), but each link's markers are a
+    :func:`random_cluster` scaled to ``spread`` mm between its farthest
+    markers (a single marker sits at the link origin), and the joint is
+    ``lever`` mm from each link's marker centroid in a random direction.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    kind : {"ball", "hinge", "none"}
+    n_markers : (int, int)
+        Markers on the parent and the child (1 or more each).
+    spread : (float, float)
+        Largest marker separation on each link (mm).
+    lever : (float, float)
+        Distance of the joint from each link's marker centroid (mm).
+    cycle_s, offset
+        As in :func:`two_segment_motion`.
+    """
+    if kind not in ("ball", "hinge", "none"):
+        raise ValueError(f"kind: expected 'ball', 'hinge' or 'none', got {kind!r}")
+    templates = []
+    for count, size in zip(n_markers, spread, strict=True):
+        x = random_cluster(rng, count)
+        sep = float(np.max(np.linalg.norm(x[:, None] - x[None], axis=2))) if count > 1 else 1.0
+        templates.append(x * (size / sep))
+    centres = []
+    for dist in lever:
+        v = rng.normal(size=3)
+        centres.append(dist * v / np.linalg.norm(v))
+    base = two_segment_motion(rng, kind=kind, n_markers=(3, 3), cycle_s=cycle_s, offset=offset)
+    return TwoSegmentMotion(
+        template_parent=templates[0],
+        template_child=templates[1],
+        centre_parent=centres[0],
+        centre_child=centres[1],
+        axis=base.axis,
+        kind=kind,
+        phase=base.phase,
+        freq=base.freq,
+        offset=base.offset,
+    )
+
+
+@dataclass(frozen=True)
+class LegChainMotion:
+    """A trunk -> thigh -> shank -> foot chain with the paper's minimal marker set (section V-B).
+
+    Segment frames (mm): the trunk carries 3 markers and the hip centre; the
+    thigh rotates about the hip (ball) and carries one marker; the shank
+    rotates about the knee hinge (fixed in the thigh and shank frames) and
+    carries one marker; the foot rotates about the ankle (ball) and carries
+    one marker. Angles are sums of sinusoids, so the motion can be evaluated
+    at any time.
+
+    Attributes
+    ----------
+    trunk_markers : ndarray, shape (3, 3)
+        Trunk marker coordinates in the trunk frame.
+    hip_trunk : ndarray, shape (3,)
+        Hip centre in the trunk frame (also the thigh frame origin).
+    thigh_marker : ndarray, shape (3,)
+        Thigh marker in the thigh frame.
+    knee_thigh, knee_axis : ndarray, shape (3,)
+        A point of the knee axis (the shank frame origin) and its unit
+        direction, in the thigh frame (the shank frame is the thigh frame
+        turned about this axis).
+    shank_marker : ndarray, shape (3,)
+        Shank marker in the shank frame.
+    ankle_shank : ndarray, shape (3,)
+        Ankle centre in the shank frame (the foot frame origin).
+    foot_marker : ndarray, shape (3,)
+        Foot marker in the foot frame.
+    phase, freq : ndarray, shape (13,)
+        Phases (rad) and frequencies (Hz) of the sinusoids.
+    offset : ndarray, shape (3,)
+        Mean world position of the trunk origin (mm).
+    """
+
+    trunk_markers: FloatArray
+    hip_trunk: FloatArray
+    thigh_marker: FloatArray
+    knee_thigh: FloatArray
+    knee_axis: FloatArray
+    shank_marker: FloatArray
+    ankle_shank: FloatArray
+    foot_marker: FloatArray
+    phase: FloatArray
+    freq: FloatArray
+    offset: FloatArray
+
+    def frames_at(self, times: ArrayLike) -> dict[str, tuple[FloatArray, FloatArray]]:
+        """World poses ``(R (N, 3, 3), origin (N, 3))`` of "trunk", "thigh", "shank" and "foot"."""
+        t = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        w = np.sin(2.0 * np.pi * self.freq * t[:, None] + self.phase)
+        R_trunk = Rotation.from_rotvec(np.deg2rad(15.0) * w[:, :3]).as_matrix()
+        o_trunk = 100.0 * w[:, 3:6] + self.offset
+        hip = Rotation.from_euler("xyz", np.deg2rad(np.stack([30.0 + 40.0 * w[:, 6], 20.0 * w[:, 7], 15.0 * w[:, 8]], 1)))
+        R_thigh = R_trunk @ hip.as_matrix()
+        o_thigh = np.einsum("nij,j->ni", R_trunk, self.hip_trunk) + o_trunk
+        knee = Rotation.from_rotvec(np.deg2rad(-45.0 - 40.0 * w[:, 9])[:, None] * self.knee_axis).as_matrix()
+        R_shank = R_thigh @ knee
+        o_shank = np.einsum("nij,j->ni", R_thigh, self.knee_thigh) + o_thigh
+        ankle = Rotation.from_euler("xyz", np.deg2rad(np.stack([25.0 * w[:, 10], 15.0 * w[:, 11], 10.0 * w[:, 12]], 1)))
+        R_foot = R_shank @ ankle.as_matrix()
+        o_foot = np.einsum("nij,j->ni", R_shank, self.ankle_shank) + o_shank
+        return {"trunk": (R_trunk, o_trunk), "thigh": (R_thigh, o_thigh), "shank": (R_shank, o_shank), "foot": (R_foot, o_foot)}
+
+    def markers_at(self, times: ArrayLike) -> dict[str, FloatArray]:
+        """Noise-free world markers: "trunk" (N, 3, 3), "thigh", "shank", "foot" (N, 1, 3)."""
+        f = self.frames_at(times)
+
+        def carry(name: str, local: FloatArray) -> FloatArray:
+            R, o = f[name]
+            out: FloatArray = np.einsum("nij,pj->npi", R, np.atleast_2d(local)) + o[:, None, :]
+            return out
+
+        return {
+            "trunk": carry("trunk", self.trunk_markers),
+            "thigh": carry("thigh", self.thigh_marker),
+            "shank": carry("shank", self.shank_marker),
+            "foot": carry("foot", self.foot_marker),
+        }
+
+    def joints_at(self, times: ArrayLike) -> dict[str, FloatArray]:
+        """True joints in the world: "hip", "knee" (axis point), "knee_axis" (unit), "ankle", each (N, 3)."""
+        f = self.frames_at(times)
+        R_thigh, o_thigh = f["thigh"]
+        return {
+            "hip": o_thigh,
+            "knee": f["shank"][1],
+            "knee_axis": np.einsum("nij,j->ni", R_thigh, self.knee_axis),
+            "ankle": f["foot"][1],
+        }
+
+
+def leg_chain_motion(rng: np.random.Generator, *, cycle_s: float = 20.0, offset: ArrayLike = (0.0, 0.0, 1000.0)) -> LegChainMotion:
+    """A random leg with the minimal marker set of the paper's section V-B (see :class:`LegChainMotion`).
+
+    Trunk markers about 200 mm apart, the hip ~100 mm below them, a thigh
+    marker on the lateral thigh (off the knee axis), the knee axis roughly
+    medio-lateral ~420 mm below the hip, a shank marker on the lateral shank
+    and a foot marker ~120 mm in front of the ankle. Dimensions get a few
+    per cent of random variation.
+    """
+    j = lambda scale, size=3: rng.normal(0.0, scale, size)  # noqa: E731
+    trunk = np.array([[-80.0, -60.0, 60.0], [90.0, -50.0, 40.0], [0.0, 90.0, 80.0]]) + j(10.0, (3, 3))
+    axis = np.array([1.0, 0.0, 0.0]) + j(0.05)
+    freq = rng.uniform(0.15, 0.5, 13) * 20.0 / cycle_s
+    return LegChainMotion(
+        trunk_markers=trunk,
+        hip_trunk=np.array([80.0, 0.0, -100.0]) + j(10.0),
+        thigh_marker=np.array([80.0, 30.0, -230.0]) + j(10.0),
+        knee_thigh=np.array([0.0, 0.0, -420.0]) + j(15.0),
+        knee_axis=axis / np.linalg.norm(axis),
+        shank_marker=np.array([60.0, 40.0, -200.0]) + j(10.0),
+        ankle_shank=np.array([0.0, 0.0, -400.0]) + j(15.0),
+        foot_marker=np.array([20.0, 130.0, -40.0]) + j(10.0),
+        phase=rng.uniform(0.0, 2.0 * np.pi, 13),
+        freq=freq,
+        offset=np.asarray(offset, dtype=np.float64),
+    )

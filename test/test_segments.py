@@ -503,9 +503,9 @@ def test_input_errors() -> None:
     rig = _rig(np.random.default_rng(16), 50)
     with pytest.raises(InputError, match=r"shape \(N, P, 3\)"):
         fit_centre_two_segments(rig.parent[:, :, :2], rig.child)
-    with pytest.raises(InputError, match="minimal marker sets"):
+    with pytest.raises(InputError, match="use fit_centre_minimal"):
         fit_centre_two_segments(rig.parent[:, :2], rig.child)
-    with pytest.raises(InputError, match="minimal marker sets"):
+    with pytest.raises(InputError, match="use fit_axis_minimal"):
         fit_axis_two_segments(rig.parent, rig.child[:, :2])
     with pytest.raises(InputError, match="same number of frames"):
         fit_centre_two_segments(rig.parent[:40], rig.child)
