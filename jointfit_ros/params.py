@@ -377,6 +377,23 @@ def _values(specs: Sequence[ParamSpec], values: Mapping[str, Any], prefix: str =
     return {s.name: check_value(s, values.get(prefix + s.name), prefix + s.name) for s in specs}
 
 
+def _minimal_hint(v: Mapping[str, Any], name: str) -> str:
+    """What Pham et al.'s marker-count rules say about a joint with fewer than 3 markers on a side."""
+    from jointfit_core.identifiability import marker_count_identifiability
+
+    n_p = 4 if v["parent_pose_topic"] else len(v["parent_markers"])
+    n_c = 4 if v["child_pose_topic"] else len(v["child_markers"])
+    if min(n_p, n_c) < 1:
+        return ""
+    verdict = marker_count_identifiability(v["type"], n_p, n_c)
+    if not verdict.identifiable:
+        return f"; {verdict.reason}"
+    return (
+        f"; ({n_p}, {n_c}) markers identify a {v['type']} joint only with the batch minimal-marker method "
+        f"jointfit_core.{verdict.function} (the online estimator poses each segment from >= 3 markers)"
+    )
+
+
 def _joint_config(name: str, values: Mapping[str, Any], marker_names: Sequence[str]) -> JointConfig:
     v = _values(JOINT_PARAMS, values, name + ".")
     known = set(marker_names)
@@ -390,7 +407,7 @@ def _joint_config(name: str, values: Mapping[str, Any], marker_names: Sequence[s
         if len(markers) < 3:
             raise ConfigError(
                 f"{name}.{side}_markers: expected at least 3 marker names (or {name}.{side}_pose_topic), "
-                f"got {markers!r}"
+                f"got {markers!r}" + _minimal_hint(v, name)
             )
         unknown = [m for m in markers if m not in known]
         if unknown:

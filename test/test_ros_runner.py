@@ -263,3 +263,15 @@ def test_unloadable_calibration_is_never_overwritten(tmp_path: Any) -> None:
     assert JointRunner(cfg.joints[0], cfg).estimator.frozen  # the new file loads
     assert runner.save() == str(path)  # later saves replace the (now own) file, .bak kept
     assert len([p for p in tmp_path.iterdir() if ".unloadable-" in p.name]) == 1
+
+
+def test_too_few_markers_are_explained_by_the_identifiability_rules() -> None:
+    """A joint configured with fewer than 3 markers on a side is refused with Pham et al.'s verdict."""
+    names = ["A1", "A2", "B1", "B2"]
+    base = {"joints": ["hip"], "marker_names": names, "hip.parent_markers": ["A1", "A2"]}
+    with pytest.raises(ConfigError, match=r"\(2, 1\) markers is not identifiable.*Add a marker"):
+        node_config({**base, "hip.child_markers": ["B1"]})
+    with pytest.raises(ConfigError, match=r"only with the batch minimal-marker method jointfit_core\.fit_centre_minimal"):
+        node_config({**base, "hip.child_markers": ["B1", "B2"]})
+    with pytest.raises(ConfigError, match=r"revolute joint with \(1, 1\) markers is not identifiable"):
+        node_config({**base, "hip.type": "hinge", "hip.parent_markers": ["A1"], "hip.child_markers": ["B1"]})
