@@ -629,7 +629,7 @@ class _Prepared:
         """
         big = max(float(np.nanmax(np.abs(self.markers_parent))), float(np.nanmax(np.abs(self.markers_child))))
         floor = 1e3 * np.finfo(np.float64).eps * big
-        return self.sigma_parent > floor or self.sigma_child > floor
+        return bool(self.sigma_parent > floor or self.sigma_child > floor)
 
 
 def _check_segment(arr: FloatArray, name: str, kind: str) -> FloatArray:
