@@ -10,8 +10,8 @@ mcap) with ``rosbags``. For each bag, in the same run:
 
 * **read**: iterate over the messages (:func:`jointfit_ros.bag.iter_bag_messages`): what any
   tool pays to get the bytes out of the file;
-* **read + parse**: also parse every message into a ``(40, 3)`` frame
-  (:class:`jointfit_ros.inputs.MessageRouter`.frame);
+* **read + parse**: also parse every message into a ``(40, 3)`` frame, in blocks of 4096
+  messages as ``jointfit fit`` does (:meth:`jointfit_ros.inputs.MessageRouter.frames_many`);
 * **fit**: ``jointfit fit BAG --config ... --no-report`` in-process (:func:`jointfit_ros.cli.fit_main`):
   read, parse, both joints' estimators over the whole recording (windows covering it), final
   solve, calibrations and summary written;
@@ -110,8 +110,13 @@ def main(argv: list[str] | None = None) -> int:
 
             def read_parse(bag: Path = bag) -> None:
                 router = MessageRouter(cfg, [])
+                block: list[bytes] = []
                 for msg in iter_bag_messages(bag, ["/markers"]):
-                    router.frame(msg.raw)
+                    block.append(msg.raw)
+                    if len(block) == 4096:
+                        router.frames_many(block)
+                        block = []
+                router.frames_many(block)
 
             def fit(bag: Path = bag, report: bool = False) -> None:
                 args = [str(bag), "--config", str(config), "--out", str(tmp / "out"), "--quiet"]

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .calibration import fit_from_dict, fit_to_dict
-from .checks import check_frame, check_vector3
+from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
@@ -258,6 +258,44 @@ def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatAr
     d = ybar - (R @ ps.xbar[:, :, None])[:, :, 0]
     yy = (Y * Y).sum(axis=(1, 2)) - ps.n * (ybar * ybar).sum(axis=1)  # Y is zero where not visible
     ss = np.maximum(yy + ps.xx - 2.0 * lam[:, 3], 0.0)
+    return R, d, ss
+
+
+def _poses_many(
+    Y: FloatArray, xc_t: FloatArray, wn: FloatArray, n: FloatArray, xbar: FloatArray, xx: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`_poses` of M frames at once: the same operations on stacked arrays, frame by frame bit-identical.
+
+    Parameters
+    ----------
+    Y : ndarray, shape (M, 2, Pmax, 3)
+        Measured points, zero where missing or padding.
+    xc_t, wn, n, xbar, xx : ndarray, shapes (M, 2, 3, Pmax), (M, 2, Pmax), (M, 2), (M, 2, 3), (M, 2)
+        Each frame's :class:`_PairSet` fields.
+
+    Returns
+    -------
+    R : ndarray, shape (M, 2, 3, 3)
+    d : ndarray, shape (M, 2, 3)
+    ss : ndarray, shape (M, 2)
+
+    Notes
+    -----
+    Every product keeps the per-frame shapes of :func:`_poses` as the matrices
+    numpy's ``matmul`` loops over (so each is the same BLAS or LAPACK call on the
+    same numbers), and the rest is elementwise or reduces the same axes: the
+    poses, and so the statistics, equal the per-frame path's bit for bit.
+    """
+    m = Y.shape[0]
+    ybar = (wn[:, :, None, :] @ Y)[:, :, 0]
+    S = xc_t @ Y
+    N = (S.reshape(m, 2, 9) @ _HORN_A.T).reshape(m, 2, 4, 4)
+    lam, V = _eigh(N)
+    q = V[:, :, :, 3]
+    R = ((q[:, :, :, None] * q[:, :, None, :]).reshape(m, 2, 16) @ _HORN_B.T).reshape(m, 2, 3, 3)
+    d = ybar - (R @ xbar[:, :, :, None])[:, :, :, 0]
+    yy = (Y * Y).sum(axis=(2, 3)) - n * (ybar * ybar).sum(axis=2)
+    ss = np.maximum(yy + xx - 2.0 * lam[:, :, 3], 0.0)
     return R, d, ss
 
 
@@ -823,6 +861,201 @@ class OnlineJoint:
                     self._add(self._fill(p_frame, c_frame), p_stamp)
             return None
         return self._add(self._fill(yp, yc), st)
+
+    def update_many(self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None = None) -> None:
+        """Add a block of frames: the state of :meth:`update` of each frame in turn, without the outputs.
+
+        For offline fits of whole recordings, where the per-frame world
+        outputs are not needed: once the templates are fixed, the frames of
+        the block are posed, turned into contributions and added to the
+        window in a few vectorised steps instead of one Python call each.
+
+        Parameters
+        ----------
+        parent, child : array_like, shape (N, Pa, 3) and (N, Pc, 3)
+            World marker positions of the two segments, frame after frame
+            (input units), NaN for a missing marker.
+        stamps : array_like, shape (N,), optional
+            Seconds; needed by time windows; a frame whose stamp does not
+            exceed every earlier one is dropped (``stamp_not_increasing``).
+
+        Raises
+        ------
+        InputError
+            Wrong shapes or marker counts, infinite values, non-finite
+            stamps, or no stamps for a window that needs them. The whole
+            block is checked first, so nothing is added when it raises
+            (:meth:`update` would have added the frames before the bad one;
+            call it frame by frame where that matters).
+
+        Notes
+        -----
+        Equivalence with :meth:`update` of each frame: the sums, the
+        templates, :attr:`dropped`, :attr:`n_frames_seen`, the window's
+        stamps and the lag-pair state end up the same.
+
+        * Frames while the templates are being built (and the replay of the
+          frames kept meanwhile) go through :meth:`update` itself.
+        * Stamps: frame k is accepted when its stamp exceeds the running
+          maximum of the earlier stamps (the last accepted stamp is that
+          maximum, since a dropped stamp never exceeds it).
+        * Visibility: frames are grouped by their missing-marker pattern;
+          each pattern's cached pair set (the same cache as :meth:`update`)
+          says whether each segment can be posed (drops counted per frame).
+        * Poses (:func:`_poses_many`) and contributions are computed for the
+          frames that enter the statistics with the per-frame operations on
+          stacked arrays, bit-identical to the per-frame path. A frame
+          carries its lag pair when the accepted frame before it (the
+          previous block's last one for the first) entered the statistics.
+        * The window takes the block with
+          :meth:`~jointfit_core.stats.SlidingSums.push_many`: bit-identical
+          to pushing the frames one by one for frame and time windows, equal
+          up to rounding under exponential forgetting.
+
+        While frozen, frames are counted and dropped as :meth:`update` does
+        and nothing enters the statistics.
+        """
+        yp, yc, st = self._check_block(parent, child, stamps)
+        n = yp.shape[0]
+        k = 0
+        while k < n and not self.templates_ready:
+            self.update(yp[k], yc[k], None if st is None else float(st[k]))
+            k += 1
+        if k < n:
+            self._update_block(yp[k:], yc[k:], None if st is None else st[k:])
+
+    def _check_block(
+        self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """The checks :meth:`update` makes per frame, on a whole block (float64 arrays, stamps or None)."""
+        blocks = []
+        for name, value, k in (("parent", parent, 0), ("child", child, 1)):
+            arr = as_real_array(value, name=name, expected="shape (N, P, 3)")
+            if arr.ndim != 3 or arr.shape[2] != 3:
+                raise InputError(f"{name}: expected shape (N, P, 3), got shape {arr.shape}")
+            if self.n_markers is not None and arr.shape[1] != self.n_markers[k]:
+                raise InputError(f"{name}: expected {self.n_markers[k]} markers, got {arr.shape[1]}")
+            if np.isinf(arr).any():
+                raise InputError(f"{name}: contains inf; use NaN for missing markers")
+            blocks.append(arr)
+        yp, yc = blocks
+        n = yp.shape[0]
+        if yc.shape[0] != n:
+            raise InputError(f"parent, child: expected the same number of frames, got {n} and {yc.shape[0]}")
+        if n and self.n_markers is None and min(yp.shape[1], yc.shape[1]) < MIN_POSE_MARKERS:
+            raise InputError(
+                f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got "
+                f"{yp.shape[1]} and {yc.shape[1]}"
+            )
+        st: FloatArray | None = None
+        if stamps is not None:
+            st = as_real_array(stamps, name="stamps", expected=f"shape ({n},)")
+            if st.shape != (n,):
+                raise InputError(f"stamps: expected shape ({n},), got shape {st.shape}")
+            if not np.isfinite(st).all():
+                raise InputError("stamp: expected finite numbers of seconds, got a non-finite stamp")
+        elif n and self.spec.needs_stamps:
+            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
+        return yp, yc, st
+
+    def _update_block(self, yp: FloatArray, yc: FloatArray, st: FloatArray | None) -> None:
+        """:meth:`update_many` once the templates are fixed (checked frames)."""
+        assert self._parent is not None and self._child is not None and self.n_markers is not None
+        if st is not None:
+            before = np.empty_like(st)
+            before[0] = -np.inf if self._last_stamp is None else self._last_stamp
+            np.maximum.accumulate(st[:-1], out=before[1:])
+            np.maximum(before[1:], before[0], out=before[1:])
+            accepted = st > before
+            n_late = int(st.size - np.count_nonzero(accepted))
+            if n_late:
+                self.dropped["stamp_not_increasing"] = self.dropped.get("stamp_not_increasing", 0) + n_late
+                yp, yc, st = yp[accepted], yc[accepted], st[accepted]
+            if st.size:
+                self._last_stamp = float(st[-1])
+        m = yp.shape[0]
+        if m == 0:
+            return
+        self.n_frames_seen += m
+        pa, pc = self.n_markers
+        p_max = max(pa, pc)
+        Y = np.zeros((m, 2, p_max, 3))
+        Y[:, 0, :pa] = yp
+        Y[:, 1, :pc] = yc
+        # (m, 2, Pmax): a marker with any non-finite coordinate; padding rows are zeros: present
+        missing = ~(np.isfinite(Y[..., 0]) & np.isfinite(Y[..., 1]) & np.isfinite(Y[..., 2]))
+        Y[missing] = 0.0
+        flat = missing.reshape(m, 2 * p_max)
+        if 2 * p_max <= 63:
+            codes = flat @ (np.int64(1) << np.arange(2 * p_max, dtype=np.int64))
+            _, first, inverse = np.unique(codes, return_index=True, return_inverse=True)
+        else:
+            _, first, inverse = np.unique(flat, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.reshape(m)
+        sets = [self._pair(missing[i]) for i in first]
+        parent_ok = np.array([ps.parent is not None for ps in sets])[inverse]
+        child_ok = np.array([ps.child is not None for ps in sets])[inverse]
+        for reason, ok in (("parent_not_posed", parent_ok), ("child_not_posed", child_ok)):
+            bad = int(m - np.count_nonzero(ok))
+            if bad:
+                self.dropped[reason] = self.dropped.get(reason, 0) + bad
+        entered = parent_ok & child_ok
+        if self._frozen:
+            entered[:] = False
+        rows = np.flatnonzero(entered)
+        if rows.size:
+            # a lag pair when the accepted frame before entered the statistics
+            before_in = np.empty(m, dtype=bool)
+            before_in[0] = self._prev_in
+            before_in[1:] = entered[:-1]
+            self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows)
+        self._prev_in = bool(entered[-1])
+
+    def _push_block(
+        self,
+        Y: FloatArray,
+        sets: list[_PairSet],
+        which: NDArray[np.intp],
+        paired: NDArray[np.bool_],
+        st: FloatArray | None,
+        rows: NDArray[np.intp],
+    ) -> None:
+        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair set ``sets[which]``) and push them."""
+        m = Y.shape[0]
+        R, d, ss = _poses_many(
+            Y,
+            np.stack([ps.xc_t for ps in sets])[which],
+            np.stack([ps.wn for ps in sets])[which],
+            np.stack([ps.n for ps in sets])[which],
+            np.stack([ps.xbar for ps in sets])[which],
+            np.stack([ps.xx for ps in sets])[which],
+        )
+        c = np.empty((m, _N_SUMS))
+        c[:, 0] = 1.0
+        x = np.empty((m, 3, 4))
+        x[:, :, :3] = R[:, 1]
+        np.subtract(d[:, 1], d[:, 0], out=x[:, :, 3])
+        z = c[:, _Z].reshape(m, 3, 4)  # a view: written in place, as the per-frame path writes its buffer
+        np.matmul(np.swapaxes(R[:, 0], 1, 2), x, out=z)  # [Q | t] = R_p^T [R_c | d_c - d_p]
+        zf = c[:, _Z]
+        np.multiply(zf[:, :, None], zf[:, None, :], out=c[:, _ZZ].reshape(m, 12, 12))
+        c[:, _W] = np.stack([ps.W_flat for ps in sets])[which]
+        c[:, _SS : _SS + 4 : 2] = ss
+        c[:, _SS + 1 : _SS + 4 : 2] = np.stack([ps.dof for ps in sets])[which]
+        c[:, _LAG:] = 0.0
+        # Lag pairs: the previous frame that entered is the previous row (the previous block's last for row 0).
+        z_prev = np.empty_like(z)
+        z_prev[0] = self._z_prev
+        z_prev[1:] = z[:-1]
+        pr = np.flatnonzero(paired)
+        c[pr, _LAG] = 1.0
+        c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
+        c[pr, _LAG + 13 :] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
+        if self._sums is None:
+            self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
+        self._sums.push_many(c, None if st is None else st[rows])
+        self._dirty = True
+        self._z_prev[...] = z[-1]
 
     def _fast_fill(self, parent: ArrayLike, child: ArrayLike) -> bool:
         """Copy a well-shaped frame straight into the pose buffer; False to take the checked path.

@@ -23,6 +23,7 @@ have wandered from it.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -44,6 +45,9 @@ RefFn = Callable[[FloatArray, FloatArray], "FloatArray | None"]
 
 #: Under exponential forgetting, check every this many frames whether to move the reference point.
 _REREF_EVERY = 256
+#: Op code of "no row" in :meth:`SlidingSums.push_many`'s replay (row codes are absolute frame indices >= 0,
+#: or -1 - k for the k-th summed group of rows).
+_NO_ROW = -(2**62)
 
 
 @dataclass(frozen=True)
@@ -229,6 +233,7 @@ class SlidingSums:
         self._shadow_ref = np.zeros(3)
         self._shadow_end = 0
         self._shadow_next = 0
+        self._stamps_sorted = True  # every stamp pushed so far at least the previous one (time windows)
 
     @property
     def n_window(self) -> int:
@@ -270,6 +275,10 @@ class SlidingSums:
             raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
         if self.n_pushed == 0 and self._first_ref is not None:
             self.ref = np.asarray(self._first_ref(record), dtype=np.float64)
+        if self.spec.seconds is not None:
+            st = float(stamp)  # type: ignore[arg-type]  # checked above
+            if not (math.isfinite(st) and (self.last_stamp is None or st >= self.last_stamp)):
+                self._stamps_sorted = False
         if self.spec.exponential:
             self._push_decay(record, stamp)
         else:
@@ -277,6 +286,274 @@ class SlidingSums:
         self.n_pushed += 1
         if stamp is not None:
             self.last_stamp = float(stamp)
+
+    def push_many(self, records: FloatArray, stamps: FloatArray | None = None) -> None:
+        """Add the frames of a block, oldest first: the state of :meth:`push` of each row in turn.
+
+        Parameters
+        ----------
+        records : ndarray, shape (M, R)
+            One record per frame, already checked by the caller.
+        stamps : ndarray, shape (M,), optional
+            Seconds; required by time windows and time half-lives (the
+            caller drops frames whose stamp does not increase).
+
+        Raises
+        ------
+        InputError
+            Records of the wrong shape, stamps of the wrong shape, or no
+            stamps for a window that needs them (nothing is added).
+
+        Notes
+        -----
+        *Stored contributions* (no contribution function, no reference
+        point: :class:`~jointfit_core.estimator.OnlineJoint`'s sums) in a
+        frame or time window: the block is replayed exactly. The frames that
+        leave at each step, the shadow rebuild's schedule (which frames it
+        adds, removes and rebuilds at each step, and the steps at which it
+        replaces the live sums) and the ring's growth are worked out with
+        integer arithmetic over the block; then the live sums after the last
+        replacement, and the shadow, are each one sequential
+        ``numpy.add.reduce`` (row after row, as :meth:`push` adds them) of
+        their start value and the rows added and subtracted in that order.
+        The sums, the shadow, the ring and the counters are therefore
+        bit-for-bit those of the sequential pushes, at a cost of
+        O(M) numpy work and O(cycles) Python steps. Time windows need
+        non-decreasing stamps for this (the usual case: the estimators drop
+        frames whose stamp does not increase); otherwise, with a
+        contribution function or a reference point, and for contributions
+        of length 1, the rows are pushed one by one.
+
+        *Exponential forgetting* with stored contributions: the block is
+        applied in closed form, ``sums <- w_old sums + sum_k w_k c_k`` with
+        ``w_k`` the product of the decays after frame k (``exp`` of the sum
+        of their exponents); this equals the sequential recursion up to
+        rounding (relative differences of a few ulp per frame of the
+        half-life, not bit-for-bit).
+        """
+        recs = np.asarray(records, dtype=np.float64)
+        if recs.ndim != 2 or recs.shape[1] != self.record_size:
+            raise InputError(f"records: expected shape (M, {self.record_size}), got shape {recs.shape}")
+        m = recs.shape[0]
+        st: FloatArray | None = None
+        if stamps is not None:
+            st = np.asarray(stamps, dtype=np.float64)
+            if st.shape != (m,):
+                raise InputError(f"stamps: expected shape ({m},), got shape {st.shape}")
+        elif self.spec.needs_stamps and m:
+            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
+        if m == 0:
+            return
+        # (a single-column reduce would be summed pairwise by numpy, not row after row)
+        vectorised = self._contrib is None and self._store_contrib and (self.spec.exponential or self.n_sums > 1)
+        if vectorised and st is not None and self.spec.seconds is not None:
+            ordered = bool(np.all(st[1:] >= st[:-1])) and bool(np.isfinite(st).all())
+            if self.last_stamp is not None:
+                ordered = ordered and bool(st[0] >= self.last_stamp)
+            vectorised = ordered and self._stamps_sorted
+        if not vectorised:
+            for k in range(m):
+                self.push(recs[k], None if st is None else float(st[k]))
+            return
+        if self.n_pushed == 0 and self._first_ref is not None:
+            self.ref = np.asarray(self._first_ref(recs[0]), dtype=np.float64)
+        if self.spec.exponential:
+            self._push_many_decay(recs, st)
+        else:
+            self._push_many_ring(recs, st)
+        self.n_pushed += m
+        if st is not None:
+            self.last_stamp = float(st[-1])
+
+    def _push_many_decay(self, c: FloatArray, st: FloatArray | None) -> None:
+        """Exponential forgetting of a block of contributions, in closed form (see :meth:`push_many`)."""
+        m = c.shape[0]
+        if self.spec.half_life_s is not None:
+            assert st is not None and (self.last_stamp is not None or self.n_pushed == 0)
+            prev = np.empty(m)
+            prev[0] = st[0] if self.n_pushed == 0 else self.last_stamp
+            prev[1:] = st[:-1]
+            steps = np.maximum(st - prev, 0.0)
+        else:
+            steps = np.ones(m)
+        if self.n_pushed == 0:
+            steps[0] = 0.0  # the first frame ever finds nothing to decay
+        expo = self._log_decay * steps
+        # after[k]: exponent of the decays applied after frame k (frames k+1 .. m-1)
+        after = np.zeros(m)
+        after[:-1] = np.cumsum(expo[::-1])[::-1][1:]
+        w = np.exp(after)
+        w_old = float(np.exp(after[0] + expo[0]))
+        self.sums = w_old * self.sums + w @ c
+        if self._count_index.size:
+            self._counts_sq = w_old * w_old * self._counts_sq + (w * w) @ (c[:, self._count_index] ** 2)
+
+    def _push_many_ring(self, c: FloatArray, st: FloatArray | None) -> None:
+        """Exact replay of :meth:`_push_contrib` over a block (see :meth:`push_many`)."""
+        m = c.shape[0]
+        lo0, h0 = self._lo, self._hi
+        cap0 = self._rec.shape[0]
+        hi_before = h0 + np.arange(m)  # hi before each push
+        # lo after each push (absolute indices)
+        if self.spec.frames is not None:
+            cand = hi_before + 1 - self.spec.frames
+        else:
+            assert st is not None
+            horizon = st - float(self.spec.seconds)  # type: ignore[arg-type]
+            count = np.searchsorted(st, horizon, side="right")  # new frames at or before the horizon
+            for seg in self._ring_stamp_segments():
+                count = count + np.searchsorted(seg, horizon, side="right")
+            cand = np.minimum(lo0 + count, hi_before)
+            cand = np.maximum(cand, hi_before + 1 - self._max_frames)
+        lo_after = np.maximum.accumulate(np.maximum(cand, lo0))
+        lo_before = np.empty(m, dtype=np.int64)
+        lo_before[0] = lo0
+        lo_before[1:] = lo_after[:-1]
+        cap = cap0
+        if self.spec.seconds is not None:
+            size = int((hi_before + 1 - lo_after).max())
+            while cap < size and cap < self._max_frames:
+                cap = min(2 * cap, self._max_frames)
+
+        extras: list[FloatArray] = []  # sums of several leaving rows, (n, L) each; coded -1 - position overall
+
+        def fill(dst: FloatArray, codes: NDArray[np.int64], sign: float) -> None:
+            """``dst[i] = sign * row(codes[i])``: rows by absolute index (the ring before this block, or
+            the block), summed groups, or -0.0 (adding it changes nothing, bit for bit) for ``_NO_ROW``."""
+            a, b = int(codes[0]), int(codes[-1])
+            src: FloatArray | None = None
+            if a >= 0 and b - a == codes.size - 1 and (codes.size < 3 or bool((np.diff(codes) == 1).all())):
+                # consecutive frames (the common case): slices
+                if a >= h0:
+                    src = c[a - h0 : b - h0 + 1]
+                elif b < h0 and a % cap0 <= b % cap0:
+                    src = self._rec[a % cap0 : b % cap0 + 1]
+            if src is not None:
+                if sign < 0.0:
+                    np.negative(src, out=dst)
+                else:
+                    dst[...] = src
+                return
+            new = codes >= h0
+            old = np.flatnonzero((codes >= 0) & ~new)
+            got = np.flatnonzero(new)
+            summed = np.flatnonzero((codes < 0) & (codes != _NO_ROW))
+            if old.size:
+                dst[old] = self._rec.take(codes[old] % cap0, axis=0)
+            if got.size:
+                dst[got] = c.take(codes[got] - h0, axis=0)
+            if summed.size:
+                dst[summed] = np.concatenate(extras)[-1 - codes[summed]]
+            if sign < 0.0:
+                np.negative(dst, out=dst)
+            dst[codes == _NO_ROW] = -0.0
+
+        def group_codes(
+            steps: NDArray[np.int64], next_before: NDArray[np.int64] | None = None, end: int = 0
+        ) -> NDArray[np.int64]:
+            """Codes of the sums of the frames leaving at each of ``steps`` (with ``next_before``: only
+            those the shadow holds), summed as :meth:`_push_contrib` sums them (``rec[rows].sum(axis=0)``,
+            row after row; the frames left out are -0.0 rows, which change nothing)."""
+            first = lo_before[steps]
+            width = int((lo_after[steps] - first).max())
+            idx = first[:, None] + np.arange(width)
+            ok = idx < lo_after[steps][:, None]
+            if next_before is not None:
+                ok &= (idx < next_before[:, None]) | (idx >= end)
+            buf = np.empty((idx.size, self.n_sums))
+            fill(buf, np.where(ok, idx, _NO_ROW).ravel(), 1.0)
+            base = sum(e.shape[0] for e in extras)
+            extras.append(buf.reshape(steps.size, width, self.n_sums).sum(axis=1))
+            return -1 - (base + np.arange(steps.size, dtype=np.int64))
+
+        n_leave = lo_after - lo_before
+
+        def reduce(start: FloatArray, columns: list[tuple[NDArray[np.int64], float]]) -> FloatArray:
+            """``start`` plus, step after step, each column's row times its sign, added one after the other."""
+            used = [(codes, sign) for codes, sign in columns if codes.size and (codes != _NO_ROW).any()]
+            n = columns[0][0].size if used else 0
+            block = np.empty((1 + n * len(used), self.n_sums))
+            block[0] = start
+            grid = block[1:].reshape(n, len(used), self.n_sums)
+            for j, (codes, sign) in enumerate(used):
+                fill(grid[:, j], codes, sign)
+            out: FloatArray = np.add.reduce(block, axis=0)
+            return out
+
+        def sums_columns(a: int) -> list[tuple[NDArray[np.int64], float]]:
+            """The live sums' operations of steps a .. m-1: + the new frame, - the leaving ones."""
+            steps = np.arange(a, m)
+            leave = np.where(n_leave[steps] == 1, lo_before[steps], _NO_ROW)
+            several = n_leave[steps] > 1
+            if several.any():
+                leave[several] = group_codes(steps[several])
+            return [(h0 + steps, 1.0), (leave, -1.0)]
+
+        # The shadow's schedule, cycle by cycle.
+        sums_start = self.sums
+        sums_from = 0  # first step whose live-sum operations count (after the last replacement)
+        active, nxt, end = self._shadow_active, self._shadow_next, self._shadow_end
+        shadow_start = self._shadow
+        k = 0
+        if not active:  # the very first push: no shadow yet
+            nxt, end, shadow_start, k, active = int(lo_after[0]), h0 + 1, np.zeros(self.n_sums), 1, True
+        shadow = shadow_start
+        while k < m:
+            steps = np.arange(k, m)
+            # next after each step, while the rebuild continues: u_j = max(u_{j-1}, lo_j + 1 - j)
+            u = np.maximum.accumulate(np.concatenate([[nxt - (k - 1)], lo_after[k:] + 1 - steps]))[1:]
+            next_after = u + steps
+            done = np.flatnonzero(next_after >= end)
+            last = k + int(done[0]) if done.size else m - 1
+            cyc = np.arange(k, last + 1)
+            next_before = np.concatenate([[nxt], next_after[: last - k]])
+            m_j = np.maximum(next_before, lo_after[cyc])
+            rebuild = np.where(m_j < end, m_j, _NO_ROW)
+            # leaving frames the shadow holds: rebuilt already, or added since the rebuild began
+            first = lo_before[cyc]
+            one = (n_leave[cyc] == 1) & ((first < next_before) | (first >= end))
+            inside = np.where(one, first, _NO_ROW)
+            several = n_leave[cyc] > 1
+            if several.any():
+                inside[several] = group_codes(cyc[several], next_before[several], end)
+            shadow = reduce(shadow_start, [(h0 + cyc, 1.0), (inside, -1.0), (rebuild, 1.0)])
+            if done.size:  # the rebuild has covered the window: it replaces the live sums
+                sums_start, sums_from = shadow, last + 1
+                nxt, end = int(lo_after[last]), int(h0 + last + 1)
+                shadow_start = shadow = np.zeros(self.n_sums)
+            else:
+                nxt = int(next_after[-1])
+            k = last + 1
+        self.sums = reduce(sums_start, sums_columns(sums_from))
+        self._shadow, self._shadow_next, self._shadow_end, self._shadow_active = shadow, nxt, end, active
+
+        # Store the frames that stay, in a ring grown as the pushes would have grown it.
+        lo_end, hi_end = int(lo_after[-1]), h0 + m
+        if cap != cap0:
+            keep_old = np.arange(max(lo0, lo_end), h0)
+            rec = np.empty((cap, self._width))
+            stamp = np.empty(cap)
+            rec[keep_old % cap] = self._rec[keep_old % cap0]
+            stamp[keep_old % cap] = self._stamp[keep_old % cap0]
+            self._rec, self._stamp = rec, stamp
+        at = max(lo_end, h0)
+        while at < hi_end:  # at most two slices (the ring wraps once)
+            slot = at % cap
+            stop = min(hi_end, at + cap - slot)
+            self._rec[slot : slot + stop - at] = c[at - h0 : stop - h0]
+            self._stamp[slot : slot + stop - at] = np.nan if st is None else st[at - h0 : stop - h0]
+            at = stop
+        self._lo, self._hi = lo_end, hi_end
+
+    def _ring_stamp_segments(self) -> list[FloatArray]:
+        """The window's stamps as (at most two) contiguous pieces of the ring, oldest first."""
+        cap = self._rec.shape[0]
+        if self._hi <= self._lo or cap == 0:
+            return []
+        a, b = self._lo % cap, self._hi % cap
+        if a < b:
+            return [self._stamp[a:b]]
+        return [self._stamp[a:], self._stamp[:b]]
 
     def _push_decay(self, record: FloatArray, stamp: float | None) -> None:
         if self.n_pushed > 0:

@@ -11,7 +11,7 @@ compute exactly the same thing.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,7 +26,9 @@ from .raw import (
     label_points,
     label_problems,
     parse_pointcloud2,
+    parse_pointcloud2s,
     parse_pose_array,
+    parse_pose_arrays,
     parse_pose_stamped,
     rotation_matrix_from_quaternion,
 )
@@ -35,6 +37,10 @@ from .runner import JointRunner
 __all__ = ["MessageRouter", "Routed"]
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: Why :meth:`MessageRouter.frame` drops a message with infinite coordinates.
+_INF_TEXT = "infinite coordinates (NaN marks an occluded marker; inf is corrupt data)"
 
 
 @dataclass(frozen=True)
@@ -117,12 +123,9 @@ class MessageRouter:
             else:
                 msg = parse_pointcloud2(raw, label_field=cfg.label_field or None)
             if np.isinf(msg.points).any():
-                raise ConversionError("infinite coordinates (NaN marks an occluded marker; inf is corrupt data)")
+                raise ConversionError(_INF_TEXT)
             if msg.labels is None and not cfg.unlabelled and msg.points.shape[0] != n:
-                raise ConversionError(
-                    f"{msg.points.shape[0]} points without labels, expected {n} (one per name in marker_names, "
-                    "in order; an occluded marker must be sent as NaN or zeros, not left out)"
-                )
+                raise ConversionError(_count_text(msg.points.shape[0], n))
             if msg.labels is not None:
                 problems = label_problems(msg.labels, n)
                 if problems.out_of_range or problems.duplicated:
@@ -149,6 +152,176 @@ class MessageRouter:
                 seen = ~np.isnan(frame[:, 0])
                 self._last_frame[seen] = frame[seen]
         return msg.stamp_ns, msg.frame_id, frame
+
+    def frames_many(self, raws: Sequence[bytes]) -> tuple[IntArray, IntArray, list[str], FloatArray]:
+        """Parse many marker messages, in order, as :meth:`frame` parses each.
+
+        Parameters
+        ----------
+        raws : sequence of bytes
+            Messages of ``marker_topic``, oldest first.
+
+        Returns
+        -------
+        index : ndarray, shape (K,), int64
+            Positions in ``raws`` of the messages kept, increasing.
+        stamps_ns : ndarray, shape (K,), int64
+        frame_ids : list of str, length K
+        frames : ndarray, shape (K, P, 3)
+            In ``marker_names`` order, as :meth:`frame` returns them.
+
+        Notes
+        -----
+        The same frames, drops, counters and :attr:`last_problem` as
+        :meth:`frame` of each message in turn. Messages are parsed in
+        groups of one layout (:func:`~jointfit_ros.raw.parse_pose_arrays`,
+        :func:`~jointfit_ros.raw.parse_pointcloud2s`), ordered by labels or
+        by position with array operations, and checked (infinite
+        coordinates, point count, labels, frame id) per message; the
+        problems are then counted in message order. Unlabelled clouds
+        (``unlabelled``) are labelled against the previous frame, so they go
+        through :meth:`frame` one by one.
+        """
+        index, stamps, frame_ids, frames, problems = self._parse_markers(raws)
+        for problem in problems:
+            self._problem(*problem[1:])
+        return index, stamps, frame_ids, frames
+
+    def _parse_markers(
+        self, raws: Sequence[bytes]
+    ) -> tuple[IntArray, IntArray, list[str], FloatArray, list[tuple[int, str, str, str]]]:
+        """:meth:`frames_many` without counting the problems: returns them, ``(position, key, text, counter)``.
+
+        (``label_problems`` is counted here; unlabelled clouds go through :meth:`frame`, which counts.)
+        """
+        cfg = self.cfg
+        n = len(cfg.marker_names)
+        problems: list[tuple[int, str, str, str]] = []
+        if cfg.unlabelled:
+            got = [(i, self.frame(raw)) for i, raw in enumerate(raws)]
+            kept = [(i, g) for i, g in got if g is not None]
+            return (
+                np.array([i for i, _ in kept], dtype=np.int64),
+                np.array([g[0] for _, g in kept], dtype=np.int64),
+                [g[1] for _, g in kept],
+                np.stack([g[2] for _, g in kept]) if kept else np.zeros((0, n, 3)),
+                problems,
+            )
+        topic = cfg.marker_topic
+        if cfg.marker_type == "pose_array":
+            batch = parse_pose_arrays(raws)
+        else:
+            batch = parse_pointcloud2s(raws, label_field=cfg.label_field or None)
+        malformed = f"dropped a malformed message on {topic}: "
+        for i, exc in batch.errors.items():
+            problems.append((i, "malformed", malformed + str(exc), "malformed"))
+        parts: list[tuple[IntArray, IntArray, str, FloatArray]] = []
+        for g in batch.groups:
+            inf = np.isinf(g.points.reshape(g.points.shape[0], -1)).any(axis=1)
+            problems.extend((int(i), "malformed", malformed + _INF_TEXT, "malformed") for i in g.index[inf])
+            ok = ~inf
+            index, points = g.index[ok], g.points[ok]
+            if g.labels is None and points.shape[1] != n:
+                text = malformed + _count_text(points.shape[1], n)
+                problems.extend((int(i), "malformed", text, "malformed") for i in index)
+                continue
+            if g.labels is not None:
+                frames, flagged = _frames_from_labels(points, g.labels[ok], n)
+                self.counters["label_problems"] += int(np.count_nonzero(flagged))
+            else:
+                frames = points.copy()
+            frames = _mark_missing_many(frames, cfg.zero_is_missing)
+            wanted = cfg.input_frame_id
+            if wanted and g.frame_id != wanted:
+                text = f"dropped a message on {topic} in frame {g.frame_id!r}; input_frame_id is {wanted!r}"
+                problems.extend((int(i), f"frame_id:{topic}", text, "wrong_frame_id") for i in index)
+                continue
+            parts.append((index, g.stamps_ns[ok], g.frame_id, frames))
+        problems.sort(key=lambda p: p[0])
+        if not parts:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), [], np.zeros((0, n, 3)), problems
+        if len(parts) == 1:
+            index, stamps, frame_id, frames = parts[0]
+            return index, stamps, [frame_id] * index.size, frames, problems
+        index = np.concatenate([p[0] for p in parts])
+        order = np.argsort(index, kind="stable")
+        ids = [p[2] for p in parts for _ in range(p[0].size)]
+        return (
+            index[order],
+            np.concatenate([p[1] for p in parts])[order],
+            [ids[k] for k in order],
+            np.concatenate([p[3] for p in parts])[order],
+            problems,
+        )
+
+    def markers_many(self, raws: Sequence[bytes]) -> list[Routed]:
+        """Many messages of ``marker_topic``, oldest first: :meth:`markers` of each (see :meth:`route_many`)."""
+        return self.route_many([(None, raw) for raw in raws])
+
+    def route_many(self, messages: Sequence[tuple[str | None, bytes]]) -> list[Routed]:
+        """Messages in arrival order: :meth:`markers` or :meth:`pose` of each, the marker frames in one block.
+
+        Parameters
+        ----------
+        messages : sequence of (str or None, bytes)
+            ``(None, raw)`` for a message of ``marker_topic``, ``(topic, raw)``
+            for one of a pose topic.
+
+        Returns
+        -------
+        list of Routed
+            The per-frame outputs of the joints fed one message at a time
+            (those that pair with a pose topic), in message order. Joints fed
+            by the marker topic alone make none: they take the block's kept
+            frames at once (:meth:`~jointfit_ros.runner.JointRunner.markers_block`).
+
+        Notes
+        -----
+        Every joint, the counters, :attr:`last_problem`, :attr:`frame_id`
+        and :attr:`recorded` end up as after :meth:`markers` and :meth:`pose`
+        of each message in turn: the marker messages are parsed at once
+        (:meth:`frames_many`) and the marker-only joints, which never see a
+        pose message, take their frames as one block; then the messages are
+        walked in order for the rest (joints pairing markers with a pose
+        topic, pose topics, problems and frame ids), unless there are none.
+        """
+        at = [i for i, (topic, _) in enumerate(messages) if topic is None]
+        self.counters["messages"] += len(at)
+        index, stamps, frame_ids, frames, problems = self._parse_markers([messages[i][1] for i in at])
+        if index.size:
+            if self.recorded is not None:
+                self.recorded.extend(zip(stamps.tolist(), frames, strict=True))
+            for runner in self.marker_runners:
+                if runner.matcher is None:
+                    runner.markers_block(stamps, frames)
+        paired = [r for r in self.marker_runners if r.matcher is not None]
+        out: list[Routed] = []
+        if not paired and len(at) == len(messages):
+            for problem in problems:
+                self._problem(*problem[1:])
+            if index.size:
+                self.frame_id = frame_ids[-1]
+            return out
+        row_of = dict(zip(index.tolist(), range(index.size), strict=True))
+        next_problem = 0
+        j = 0  # position among the marker messages
+        for topic, raw in messages:
+            if topic is not None:
+                out.extend(self.pose(topic, raw))
+                continue
+            while next_problem < len(problems) and problems[next_problem][0] == j:
+                self._problem(*problems[next_problem][1:])
+                next_problem += 1
+            row = row_of.get(j)
+            j += 1
+            if row is None:
+                continue
+            self.frame_id = frame_ids[row]
+            for runner in paired:
+                result = runner.markers_frame(int(stamps[row]), frames[row])
+                if result is not None:
+                    out.append(Routed(runner, int(stamps[row]), frame_ids[row], result))
+        return out
 
     def markers(self, raw: bytes) -> list[Routed]:
         """A message of ``marker_topic``: the outputs of the joints it produced one for."""
@@ -188,3 +361,36 @@ class MessageRouter:
             if result is not None:
                 out.append(Routed(runner, msg.stamp_ns, msg.frame_id, result))
         return out
+
+
+def _count_text(got: int, n: int) -> str:
+    return (
+        f"{got} points without labels, expected {n} (one per name in marker_names, "
+        "in order; an occluded marker must be sent as NaN or zeros, not left out)"
+    )
+
+
+def _frames_from_labels(points: FloatArray, labels: IntArray, n: int) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """:func:`~jointfit_ros.raw.frame_from_points` with labels for G messages (before marking missing rows).
+
+    Returns the frames (G, n, 3) and which messages :func:`~jointfit_ros.raw.label_problems` flags.
+    """
+    g = points.shape[0]
+    out = np.full((g, n, 3), np.nan)
+    valid = (labels >= 0) & (labels < n)
+    flat = (np.arange(g)[:, None] * n + np.where(valid, labels, 0))[valid]
+    out.reshape(g * n, 3)[flat] = points[valid]
+    claimed = np.bincount(flat, minlength=g * n).reshape(g, n)
+    out[claimed > 1] = np.nan
+    flagged = np.asarray((~valid).any(axis=1) | (claimed > 1).any(axis=1), dtype=bool)
+    return out, flagged
+
+
+def _mark_missing_many(frames: FloatArray, zero_is_missing: bool) -> FloatArray:
+    """Rows with a non-finite coordinate (and exact zeros if asked) set to NaN, in place, (G, n, 3)."""
+    x, y, z = frames[..., 0], frames[..., 1], frames[..., 2]
+    bad = ~(np.isfinite(x) & np.isfinite(y) & np.isfinite(z))
+    if zero_is_missing:
+        bad |= (x == 0.0) & (y == 0.0) & (z == 0.0)
+    frames[bad] = np.nan
+    return frames

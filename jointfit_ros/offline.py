@@ -4,14 +4,22 @@ ROS-free. :func:`run_fit` reads a rosbag2 bag (the node's marker and pose
 topics, as raw CDR), a C3D or a TRC file, and feeds every frame, in order, to
 one :class:`~jointfit_ros.runner.JointRunner` per configured joint, through
 the same :class:`~jointfit_ros.inputs.MessageRouter` the node uses for bag
-messages. With ``whole_recording=True`` (the default of ``jointfit fit``) every
-joint's window is made longer than the recording, so the final estimate is
-the batch estimate of all of it; a node whose window covers the recording
-ends with the same numbers.
+messages, in blocks (:meth:`MessageRouter.route_many
+<jointfit_ros.inputs.MessageRouter.route_many>`,
+:meth:`JointRunner.markers_block <jointfit_ros.runner.JointRunner.markers_block>`,
+:meth:`OnlineJoint.update_many <jointfit_core.estimator.OnlineJoint.update_many>`):
+every joint ends in the state message-by-message routing (the node's) gives
+it, bit for bit, at a fraction of the cost; joints fed by the marker topic
+alone make no per-frame world outputs. With ``whole_recording=True`` (the
+default of ``jointfit fit``) every joint's window is made longer than the
+recording, so the final estimate is the batch estimate of all of it; a node
+whose window covers the recording ends with the same numbers.
 
 Along the way it keeps what the report shows: the estimate and its
-covariance at evenly spaced checkpoints (the convergence curve), every
-per-frame output's constraint residual, and (``keep_frames``) the parsed
+covariance at evenly spaced checkpoints (the convergence curve, taken
+between blocks), the per-frame outputs' constraint residuals of joints fed
+frame by frame (pose inputs; the report computes those of marker joints from
+the final estimate and the kept frames), and (``keep_frames``) the parsed
 marker frames.
 """
 
@@ -102,7 +110,11 @@ class JointTrace:
     runner : JointRunner
     checkpoints : list of Checkpoint
     output_stamps : list of float
-        Stamp of every per-frame world output, s.
+        Stamp of every per-frame world output, s, of a joint fed frame by
+        frame (one that pairs with a pose topic). Empty for joints fed in
+        blocks (marker joints), which make no per-frame outputs: the report
+        computes their per-frame residual from the final estimate and the
+        kept frames (:func:`jointfit_ros.report.segment_geometry`).
     residuals : list of float
         Its constraint residual (input units; NaN when the child was not posed).
     final : PoseSumsCentre or PoseSumsAxis or None
@@ -215,35 +227,53 @@ def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
     return [i.name for i in infos], max((i.count for i in infos), default=0)
 
 
-def _bag_events(run: FitRun, topics: list[str]) -> Iterator[None]:
-    """Route every message; yields once per message."""
+#: Most messages (frames) parsed and given to the estimators at once; blocks also end at every checkpoint.
+MAX_BLOCK = 4096
+
+
+def _bag_events(run: FitRun, topics: list[str], step: int) -> Iterator[int]:
+    """Route every message in blocks (:meth:`MessageRouter.route_many`); yields the number of messages of each.
+
+    A block ends after ``MAX_BLOCK`` messages or when the message count reaches a multiple of ``step``
+    (so that checkpoints fall between blocks, where message-by-message routing would take them).
+    """
     router = run.router
     assert router is not None
     marker_topic = topics[0] if any(r.uses_marker_topic for r in router.runners) else None
     traces = {id(t.runner): t for t in run.traces}
+    pending: list[tuple[str | None, bytes]] = []
+    done = 0
     for msg in iter_bag_messages(run.path, topics):
-        routed = router.markers(msg.raw) if msg.topic == marker_topic else router.pose(msg.topic, msg.raw)
-        for r in routed:
+        pending.append((None if msg.topic == marker_topic else msg.topic, msg.raw))
+        if (done + len(pending)) % step == 0 or len(pending) >= MAX_BLOCK:
+            for r in router.route_many(pending):
+                t = traces[id(r.runner)]
+                t.output_stamps.append(r.stamp_ns * 1e-9)
+                t.residuals.append(r.output.residual)
+            done += len(pending)
+            yield len(pending)
+            pending = []
+    if pending:
+        for r in router.route_many(pending):
             t = traces[id(r.runner)]
             t.output_stamps.append(r.stamp_ns * 1e-9)
             t.residuals.append(r.output.residual)
-        yield None
+        yield len(pending)
 
 
-def _marker_events(run: FitRun, data: MarkerData) -> Iterator[None]:
-    """Give every frame of a marker file to every joint; yields once per frame."""
+def _marker_events(run: FitRun, data: MarkerData, step: int) -> Iterator[int]:
+    """Give the frames of a marker file to every joint in blocks; yields the number of frames of each."""
     frames = data.select(run.cfg.marker_names)
     stamps_ns = np.rint((data.first_frame + np.arange(data.n_frames)) / data.rate * 1e9).astype(np.int64)
     run.frames = frames
     run.stamps = stamps_ns.astype(np.float64) * 1e-9
-    for k in range(frames.shape[0]):
-        stamp = int(stamps_ns[k])
+    start = 0
+    while start < frames.shape[0]:
+        stop = min(frames.shape[0], (start // step + 1) * step, start + MAX_BLOCK)
         for t in run.traces:
-            out = t.runner.markers_frame(stamp, frames[k])
-            if out is not None:
-                t.output_stamps.append(stamp * 1e-9)
-                t.residuals.append(out.residual)
-        yield None
+            t.runner.markers_block(stamps_ns[start:stop], frames[start:stop])
+        yield stop - start
+        start = stop
 
 
 def _checkpoint(traces: list[JointTrace]) -> None:
@@ -308,22 +338,23 @@ def run_fit(
         run.router = MessageRouter(run_cfg, [t.runner for t in run.traces])
         if keep_frames:
             run.router.recorded = []
-        events = _bag_events(run, topics)
+        step = max(1, total // max(n_checkpoints, 1))
+        events = _bag_events(run, topics, step)
     else:
         data = _read_markers(file, kind, cfg)
         total = data.n_frames
         run_cfg = _offline_config(cfg, total + 1 if whole_recording else None)
         run = FitRun(file, kind, run_cfg, [], units=data.units, rate=data.rate)
         run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
-        events = _marker_events(run, data)
-    step = max(1, total // max(n_checkpoints, 1))
+        step = max(1, total // max(n_checkpoints, 1))
+        events = _marker_events(run, data, step)
     tick = max(1, total // 100)
     done = 0
-    for _ in events:
-        done += 1
+    for n in events:
+        done += n
         if done % step == 0:
             _checkpoint(run.traces)
-        if progress is not None and done % tick == 0:
+        if progress is not None and done // tick > (done - n) // tick:
             progress(done, total)
     run.n_inputs = done
     for t in run.traces:

@@ -53,6 +53,10 @@ __all__ = [
     "parse_pose_array",
     "parse_pointcloud2",
     "parse_pose_stamped",
+    "parse_pose_arrays",
+    "parse_pointcloud2s",
+    "RawPointsGroup",
+    "RawPointsBatch",
     "points_from_pose_array",
     "points_from_pointcloud2",
     "pose_from_pose_stamped",
@@ -367,38 +371,75 @@ def _cloud_from_buffer(
             f"PointCloud2: data has {data_len} bytes, expected at least {needed} "
             f"(height {height}, width {width}, point_step {point_step}, row_step {row_step})"
         )
+    return _cloud_arrays(
+        buf,
+        data_offset,
+        fields=fields,
+        height=height,
+        width=width,
+        point_step=point_step,
+        row_step=row_step,
+        big_endian=big_endian,
+        label_field=label_field,
+    )
+
+
+def _cloud_arrays(
+    buf: Any,
+    data_offset: int,
+    *,
+    fields: Sequence[_Field],
+    height: int,
+    width: int,
+    point_step: int,
+    row_step: int,
+    big_endian: bool,
+    label_field: str | None,
+    messages: tuple[int, int] | None = None,
+) -> tuple[FloatArray, IntArray | None]:
+    """Points (and labels) of a checked PointCloud2 layout (:func:`_cloud_from_buffer` checks it).
+
+    ``messages = (G, L)``: ``buf`` holds G messages of this layout, L bytes apart; the arrays then
+    have a leading axis of length G. Same views and casts either way.
+    """
+    by_name = {f.name: f for f in fields}
+    n = height * width
+    lead: tuple[int, ...] = () if messages is None else (messages[0],)
+    lead_strides: tuple[int, ...] = () if messages is None else (messages[1],)
+    if n == 0:
+        return np.empty((*lead, 0, 3)), (np.empty((*lead, 0), dtype=np.int64) if label_field is not None else None)
     order = ">" if big_endian else "<"
 
     def column(f: _Field) -> NDArray[Any]:
         view: NDArray[Any] = np.ndarray(
-            shape=(height, width),
+            shape=(*lead, height, width),
             dtype=order + _POINTFIELD_TYPES[f.datatype][1],
             buffer=buf,
             offset=data_offset + f.offset,
-            strides=(row_step, point_step),
+            strides=(*lead_strides, row_step, point_step),
         )
-        return view.reshape(n)
+        return view.reshape(*lead, n)
 
     fx, fy, fz = by_name["x"], by_name["y"], by_name["z"]
     step = fy.offset - fx.offset
     if fx.datatype == fy.datatype == fz.datatype and step == fz.offset - fy.offset and step > 0:
         # the usual layout (x, y, z equally spaced, one type): one strided view
         xyz: NDArray[Any] = np.ndarray(
-            shape=(height, width, 3),
+            shape=(*lead, height, width, 3),
             dtype=order + _POINTFIELD_TYPES[fx.datatype][1],
             buffer=buf,
             offset=data_offset + fx.offset,
-            strides=(row_step, point_step, step),
+            strides=(*lead_strides, row_step, point_step, step),
         )
         # A float32 signalling-NaN payload raises numpy's "invalid value" flag in the cast; it is read
         # as a NaN (a missing marker) like any other NaN.
         with np.errstate(invalid="ignore"):
-            points = xyz.reshape(n, 3).astype(np.float64)
+            points = xyz.reshape(*lead, n, 3).astype(np.float64)
     else:
-        points = np.empty((n, 3), dtype=np.float64)
+        points = np.empty((*lead, n, 3), dtype=np.float64)
         with np.errstate(invalid="ignore"):
             for k, f in enumerate((fx, fy, fz)):
-                points[:, k] = column(f)
+                points[..., k] = column(f)
     labels = column(by_name[label_field]).astype(np.int64) if label_field is not None else None
     return points, labels
 
@@ -466,6 +507,39 @@ def parse_pointcloud2(raw: Buffer, *, label_field: str | None = None) -> RawPoin
         datatype, with count > 1 or not fitting in ``point_step``; ``data``
         shorter than ``height``, ``width``, ``point_step`` and ``row_step`` need.
     """
+    lay = _cloud_layout(raw)
+    points, labels = _cloud_from_buffer(
+        raw,
+        lay.data_pos,
+        lay.data_len,
+        fields=lay.fields,
+        height=lay.height,
+        width=lay.width,
+        point_step=lay.point_step,
+        row_step=lay.row_step,
+        big_endian=lay.big_endian,
+        label_field=label_field,
+    )
+    return RawPoints(stamp_ns=lay.stamp_ns, frame_id=lay.frame_id, points=points, labels=labels)
+
+
+@dataclass(frozen=True)
+class _CloudLayout:
+    """The header of a serialized PointCloud2: everything but the point data."""
+
+    stamp_ns: int
+    frame_id: str
+    fields: list[_Field]
+    height: int
+    width: int
+    point_step: int
+    row_step: int
+    big_endian: bool
+    data_pos: int
+    data_len: int
+
+
+def _cloud_layout(raw: Buffer) -> _CloudLayout:
     r = _Reader(raw, "PointCloud2")
     stamp, frame_id = r.header()
     height = r.u32("height")
@@ -479,19 +553,234 @@ def parse_pointcloud2(raw: Buffer, *, label_field: str | None = None) -> RawPoin
     row_step = r.u32("row_step")
     data_len = r.u32("data length")
     r.need(data_len, "data")
-    points, labels = _cloud_from_buffer(
-        raw,
-        r.pos,
-        data_len,
-        fields=fields,
-        height=height,
-        width=width,
-        point_step=point_step,
-        row_step=row_step,
-        big_endian=big_endian,
-        label_field=label_field,
-    )
-    return RawPoints(stamp_ns=stamp, frame_id=frame_id, points=points, labels=labels)
+    return _CloudLayout(stamp, frame_id, fields, height, width, point_step, row_step, big_endian, r.pos, data_len)
+
+
+# --------------------------------------------------------------------------- many messages at once
+
+
+@dataclass(frozen=True)
+class RawPointsGroup:
+    """Marker messages of one layout, parsed together (see :class:`RawPointsBatch`).
+
+    Attributes
+    ----------
+    index : ndarray, shape (G,), int64
+        Positions of these messages in the parsed sequence, increasing.
+    stamps_ns : ndarray, shape (G,), int64
+        ``header.stamp`` of each, nanoseconds.
+    frame_id : str
+        ``header.frame_id`` (the same for the whole group).
+    points : ndarray, shape (G, N, 3), float64
+        The points of each message, as :func:`parse_pose_array` or
+        :func:`parse_pointcloud2` give them.
+    labels : ndarray, shape (G, N), int64, or None
+        Per-point labels (labelled clouds), else None.
+    """
+
+    index: IntArray
+    stamps_ns: IntArray
+    frame_id: str
+    points: FloatArray
+    labels: IntArray | None
+
+
+@dataclass(frozen=True)
+class RawPointsBatch:
+    """A sequence of marker messages parsed at once.
+
+    Attributes
+    ----------
+    n_messages : int
+        Length of the parsed sequence.
+    groups : tuple of RawPointsGroup
+        The messages that parsed, by layout (every message in exactly one
+        group or in ``errors``).
+    errors : dict of int to ConversionError
+        The messages that did not parse, by position, with the error the
+        per-message parser raises for them.
+    """
+
+    n_messages: int
+    groups: tuple[RawPointsGroup, ...]
+    errors: dict[int, ConversionError]
+
+
+def _align4(pos: int) -> int:
+    return pos + (-(pos - 4)) % 4
+
+
+def _pose_array_spans(raw: Buffer) -> tuple[list[tuple[int, int]], int, int]:
+    """Bytes :func:`parse_pose_array` reads besides the stamp and the poses; the poses' offset and count.
+
+    ``raw`` has parsed: the reads are in bounds.
+    """
+    u32 = struct.Struct(("<" if bytes(raw[0:2]) == _CDR_LE else ">") + "I").unpack_from
+    (n_name,) = u32(raw, 12)
+    pos = _align4(16 + n_name)
+    (n,) = u32(raw, pos)
+    data = pos + 4
+    data += (-(data - 4)) % 8
+    return [(0, 2), (12, 16 + n_name), (pos, pos + 4)], data, int(n)
+
+
+def _pointcloud2_spans(raw: Buffer) -> list[tuple[int, int]]:
+    """Bytes :func:`parse_pointcloud2` reads besides the stamp and the point data (``raw`` has parsed)."""
+    u32 = struct.Struct(("<" if bytes(raw[0:2]) == _CDR_LE else ">") + "I").unpack_from
+    (n_name,) = u32(raw, 12)
+    spans = [(0, 2), (12, 16 + n_name)]
+    pos = _align4(16 + n_name)
+    spans.append((pos, pos + 12))  # height, width, fields length
+    n_fields = u32(raw, pos + 8)[0]
+    pos += 12
+    for _ in range(n_fields):
+        pos = _align4(pos)
+        (n,) = u32(raw, pos)
+        spans.append((pos, pos + 4 + n))  # name
+        pos = _align4(pos + 4 + n)
+        spans.append((pos, pos + 5))  # offset, datatype
+        pos = _align4(pos + 5)
+        spans.append((pos, pos + 4))  # count
+        pos += 4
+    spans.append((pos, pos + 1))  # is_bigendian
+    pos = _align4(pos + 1)
+    spans.append((pos, pos + 12))  # point_step, row_step, data length
+    return spans
+
+
+def _columns(spans: list[tuple[int, int]]) -> NDArray[np.intp]:
+    return np.concatenate([np.arange(a, b) for a, b in spans]) if spans else np.zeros(0, np.intp)
+
+
+def _stamps_ns(block: NDArray[np.uint8], little: bool) -> IntArray:
+    """``header.stamp`` of messages stacked as rows of ``block`` (G, L), nanoseconds."""
+    order = "<" if little else ">"
+    g, length = block.shape
+    sec = np.ndarray((g,), dtype=order + "i4", buffer=block, offset=4, strides=(length,)).astype(np.int64)
+    nsec = np.ndarray((g,), dtype=order + "u4", buffer=block, offset=8, strides=(length,)).astype(np.int64)
+    out: IntArray = sec * _NS_PER_S + nsec
+    return out
+
+
+def _parse_batch(raws: Sequence[Buffer], kind: str, label_field: str | None) -> RawPointsBatch:
+    """Group messages by length and layout; parse one message per layout, the rest with strided views."""
+    lengths = np.fromiter(map(len, raws), dtype=np.int64, count=len(raws))
+    groups: list[RawPointsGroup] = []
+    errors: dict[int, ConversionError] = {}
+    for length in np.unique(lengths).tolist():
+        index = np.flatnonzero(lengths == length)
+        joined = b"".join(raws) if index.size == len(raws) else b"".join(raws[i] for i in index.tolist())
+        block = np.frombuffer(joined, dtype=np.uint8).reshape(index.size, length)
+        not_stamp = np.r_[0:min(4, length), 12:length]
+        pending = np.arange(index.size)
+        while pending.size:
+            ref = raws[int(index[pending[0]])]
+            try:
+                msg = parse_pose_array(ref) if kind == "PoseArray" else parse_pointcloud2(ref, label_field=label_field)
+            except ConversionError as exc:
+                # the parse depends on the bytes other than the stamp only: the same error for every copy
+                same = (block[np.ix_(pending, not_stamp)] == block[pending[0], not_stamp]).all(axis=1)
+                for i in index[pending[same]]:
+                    errors[int(i)] = exc
+                pending = pending[~same]
+                continue
+            if kind == "PoseArray":
+                spans, data, n = _pose_array_spans(ref)
+            else:
+                spans = _pointcloud2_spans(ref)
+            cols = _columns(spans)
+            whole = pending.size == index.size
+            same = (block[:, cols] if whole else block[np.ix_(pending, cols)]) == block[pending[0], cols]
+            same = same.all(axis=1)
+            rows = pending[same]
+            pending = pending[~same]
+            sub = block if rows.size == index.size else np.ascontiguousarray(block[rows])
+            little = bytes(ref[0:2]) == _CDR_LE
+            if kind == "PoseArray":
+                if n == 0:
+                    points = np.empty((rows.size, 0, 3))
+                else:
+                    poses = np.ndarray(
+                        (rows.size, n, 3), dtype=("<" if little else ">") + "f8", buffer=sub, offset=data,
+                        strides=(length, 56, 8),
+                    )
+                    points = np.array(poses, dtype=np.float64, order="C")
+                labels = None
+            else:
+                lay = _cloud_layout(ref)
+                points, labels = _cloud_arrays(
+                    sub,
+                    lay.data_pos,
+                    fields=lay.fields,
+                    height=lay.height,
+                    width=lay.width,
+                    point_step=lay.point_step,
+                    row_step=lay.row_step,
+                    big_endian=lay.big_endian,
+                    label_field=label_field,
+                    messages=(rows.size, length),
+                )
+            groups.append(RawPointsGroup(index[rows], _stamps_ns(sub, little), msg.frame_id, points, labels))
+    return RawPointsBatch(len(raws), tuple(groups), errors)
+
+
+def parse_pose_arrays(raws: Sequence[Buffer]) -> RawPointsBatch:
+    """Positions of many serialized ``geometry_msgs/PoseArray`` messages at once.
+
+    Parameters
+    ----------
+    raws : sequence of bytes
+        CDR bytes of each message (as :func:`parse_pose_array` takes them).
+
+    Returns
+    -------
+    RawPointsBatch
+        For every message, either its stamp, frame id and points (in a
+        group) or the :class:`ConversionError` :func:`parse_pose_array`
+        raises for it (in ``errors``); the values are those of
+        :func:`parse_pose_array`, bit for bit.
+
+    Notes
+    -----
+    Messages of the same length whose bytes agree wherever the parser
+    reads them, apart from the stamp and the poses (encapsulation, frame
+    id, pose count; padding is ignored), share a layout: the first of them
+    is parsed with :func:`parse_pose_array` and the others are read through
+    one strided view of the stacked bytes. A recording of one publisher is
+    typically one group; messages that differ (another frame id, another
+    marker count, malformed ones) start groups of their own, so the result
+    never depends on how the sequence mixes them.
+    """
+    return _parse_batch(raws, "PoseArray", None)
+
+
+def parse_pointcloud2s(raws: Sequence[Buffer], *, label_field: str | None = None) -> RawPointsBatch:
+    """Points (and labels) of many serialized ``sensor_msgs/PointCloud2`` messages at once.
+
+    Parameters
+    ----------
+    raws : sequence of bytes
+        CDR bytes of each message (as :func:`parse_pointcloud2` takes them).
+    label_field : str or None
+        As for :func:`parse_pointcloud2`.
+
+    Returns
+    -------
+    RawPointsBatch
+        For every message, its stamp, frame id, points and labels (in a
+        group) or the :class:`ConversionError` :func:`parse_pointcloud2`
+        raises for it (in ``errors``); values bit for bit those of
+        :func:`parse_pointcloud2`.
+
+    Notes
+    -----
+    Grouping as :func:`parse_pose_arrays`: messages of the same length
+    whose header bytes (frame id, height, width, fields, byte order,
+    steps, data length) agree share a layout, parsed once; their points
+    are one strided view (float32 or float64 fields, any offsets) of the
+    stacked bytes.
+    """
+    return _parse_batch(raws, "PointCloud2", label_field)
 
 
 # --------------------------------------------------------------------------- message objects

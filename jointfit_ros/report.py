@@ -10,7 +10,10 @@ frames and the final templates:
    (ball) or circles and axis (hinge);
 2. each marker's distance to its posed template over time (the rigid-body
    residual: label swaps, ghosts and skin motion show up here);
-3. the joint constraint residual of every per-frame output over time;
+3. the joint constraint residual per frame over time: the distance between
+   the joint carried by the parent and by the child (marker joints: with
+   the final estimate, from the kept frames; pose inputs: the node's
+   per-frame outputs, with the estimate of the time);
 4. the estimate minus the final one, with +-2 sd bands, against the frames
    used (the convergence curve);
 5. the reported standard deviation against the frames used;
@@ -68,13 +71,23 @@ class SegmentGeometry:
         (NaN where missing or not posed).
     child_in_parent : ndarray, shape (N, Pc, 3)
         Child markers in the parent segment frame, input units.
+    joint_residual : ndarray, shape (N,) or None
+        Per frame, the distance between the joint carried by the parent and
+        by the child with the final estimate (:attr:`JointOutput.residual
+        <jointfit_core.estimator.JointOutput.residual>`: ball, between the
+        two centres; hinge, of the parent's axis point from the child's axis
+        line), input units; NaN where a segment is not posed; None without a
+        final estimate.
     """
 
-    def __init__(self, t: FloatArray, rp: FloatArray, rc: FloatArray, cip: FloatArray) -> None:
+    def __init__(
+        self, t: FloatArray, rp: FloatArray, rc: FloatArray, cip: FloatArray, joint_residual: FloatArray | None = None
+    ) -> None:
         self.t = t
         self.residual_parent = rp
         self.residual_child = rc
         self.child_in_parent = cip
+        self.joint_residual = joint_residual
 
 
 def _residuals(markers: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -93,9 +106,26 @@ def segment_geometry(run: FitRun, trace: JointTrace) -> SegmentGeometry | None:
     child = run.frames[:, r.child_rows]
     with np.errstate(invalid="ignore"):
         rp, R_p, d_p = _residuals(parent, tp)
-        rc, _, _ = _residuals(child, tc)
+        rc, R_c, d_c = _residuals(child, tc)
         cip = np.einsum("nji,npj->npi", R_p, child - d_p[:, None, :])
-    return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip)
+        joint = None if trace.final is None else _joint_residual(trace.final, R_p, d_p, R_c, d_c)
+    return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip, joint)
+
+
+def _joint_residual(
+    sol: PoseSumsCentre | PoseSumsAxis, R_p: FloatArray, d_p: FloatArray, R_c: FloatArray, d_c: FloatArray
+) -> FloatArray:
+    """Distance between the joint carried by the parent and by the child in every frame (N,) (NaN where unposed)."""
+    if isinstance(sol, PoseSumsCentre):
+        local_p, local_c = sol.centre_parent, sol.centre_child
+    else:
+        local_p, local_c = sol.point_parent, sol.point_child
+    diff = (R_p @ local_p + d_p) - (R_c @ local_c + d_c)
+    if isinstance(sol, PoseSumsAxis):
+        axis_c = R_c @ sol.direction_child
+        diff = diff - axis_c * np.sum(diff * axis_c, axis=1, keepdims=True)
+    out: FloatArray = np.linalg.norm(diff, axis=1)
+    return out
 
 
 def _joint_summary(run: FitRun, trace: JointTrace) -> dict[str, Any]:
@@ -279,11 +309,14 @@ def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, uni
     ax.legend(fontsize=7, ncol=2)
 
 
-def _draw_joint_residual(ax: Any, trace: JointTrace, t0: float, unit: str) -> None:
-    t = np.asarray(trace.output_stamps) - t0
-    ax.plot(t, trace.residuals, ".", ms=1.5, color="C0")
-    ax.set_xlabel("time (s)")
+def _draw_joint_residual(ax: Any, trace: JointTrace, geo: SegmentGeometry | None, t0: float, unit: str) -> None:
     what = "centres carried by parent and child" if trace.runner.cfg.type == "ball" else "parent axis point to child axis"
+    if trace.output_stamps or geo is None or geo.joint_residual is None:
+        ax.plot(np.asarray(trace.output_stamps) - t0, trace.residuals, ".", ms=1.5, color="C0")
+    else:
+        ax.plot(geo.t, geo.joint_residual, ".", ms=1.5, color="C0")
+        what += ", final estimate"
+    ax.set_xlabel("time (s)")
     ax.set_ylabel(f"distance ({unit})")
     ax.set_title(f"per-frame joint residual: {what}", fontsize=9)
 
@@ -381,7 +414,7 @@ def joint_figure(run: FitRun, trace: JointTrace) -> bytes:
                 ax.axis("off")
                 ax.text(0.5, 0.5, "no marker frames (pose inputs)" if sol is not None else "no estimate", ha="center")
         t0 = float(run.stamps[0]) if run.stamps.size else (trace.output_stamps[0] if trace.output_stamps else 0.0)
-        _draw_joint_residual(fig.add_subplot(grid[0, 2]), trace, t0, unit)
+        _draw_joint_residual(fig.add_subplot(grid[0, 2]), trace, geo, t0, unit)
         if trace.checkpoints:
             _draw_convergence(fig.add_subplot(grid[1, 0]), fig.add_subplot(grid[1, 1]), trace, unit)
         if sol is not None:

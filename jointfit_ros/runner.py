@@ -177,6 +177,55 @@ class JointRunner:
             return self._paired(0, stamp_ns, frame[self.parent_rows], frame)
         return self._paired(1, stamp_ns, frame[self.child_rows], frame)
 
+    def markers_block(self, stamps_ns: NDArray[np.int64], frames: FloatArray) -> None:
+        """Frames of all configured markers (K, P, 3) from the marker topic, oldest first, without outputs.
+
+        The estimator's and the runner's state (counters, input-rate stamps,
+        hinge sign) end up as after :meth:`markers_frame` of each frame; the
+        frames go to :meth:`OnlineJoint.update_many
+        <jointfit_core.estimator.OnlineJoint.update_many>` as one block.
+
+        Notes
+        -----
+        Per frame only where the sequential path needs the per-frame
+        output: the hinge sign (``axis_toward_marker``) is fixed on the
+        first output after the first estimate, so while it is not fixed and
+        an estimate exists, frames go through :meth:`process` one by one
+        until it is. ``outputs`` counts the frames that would have had one
+        (an estimate exists and the parent was posed). A block the
+        estimator refuses (:class:`~jointfit_core.errors.InputError`: it
+        adds nothing then) is given frame by frame, so that the bad frames
+        are counted as ``malformed`` as :meth:`process` counts them. Joints
+        that pair the frames with a pose topic take them one by one.
+        """
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        n = stamps_ns.shape[0]
+        if self.matcher is not None:
+            for k in range(n):
+                self.markers_frame(int(stamps_ns[k]), frames[k])
+            return
+        parent, child = frames[:, self.parent_rows], frames[:, self.child_rows]
+        est = self.estimator
+        k = 0
+        while k < n and not self._sign_fixed and est.solution is not None:
+            self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
+            k += 1
+        if k == n:
+            return
+        stamps = stamps_ns[k:] * 1e-9
+        seen, not_posed = est.n_frames_seen, est.dropped.get("parent_not_posed", 0)
+        with_outputs = est.solution is not None
+        try:
+            est.update_many(parent[k:], child[k:], stamps)
+        except InputError:
+            for j in range(k, n):
+                self.process(int(stamps_ns[j]), parent[j], child[j], frames[j])
+            return
+        self.counters["frames"] += n - k
+        self._stamps.extend(stamps[-_RATE_SAMPLES:].tolist())
+        if with_outputs:
+            self.counters["outputs"] += (est.n_frames_seen - seen) - (est.dropped.get("parent_not_posed", 0) - not_posed)
+
     def pose(self, source: int, stamp_ns: int, R: FloatArray, d: FloatArray) -> JointOutput | None:
         """A rigid-body pose of the parent (``source`` 0) or the child (1), as virtual markers."""
         assert self._virtual is not None

@@ -42,6 +42,7 @@ from jointfit_ros.conversions import (
     sphere_marker,
     stamp_from_ns,
 )
+from jointfit_ros.raw import RawPointsBatch, parse_pointcloud2s, parse_pose_arrays
 
 # frame ids of every length modulo 8 (alignment after the string), empty, non-ASCII
 FRAME_IDS = [
@@ -233,6 +234,102 @@ def test_parse_pointcloud2_matches_rclpy_serialization(label_type: int | None) -
             else:
                 assert parsed.labels is not None and parsed.labels.dtype == np.int64
                 np.testing.assert_array_equal(parsed.labels, labels)
+
+
+# --------------------------------------------------------------------------- many messages at once
+
+
+def _same_as_one_by_one(
+    raws: list[bytes], batch: RawPointsBatch, parse: Callable[[bytes], object], *, groups_at_most: int
+) -> None:
+    """Every message is in exactly one group or in ``errors``, with the values or error of ``parse``."""
+    assert batch.n_messages == len(raws)
+    seen: list[int] = []
+    for g in batch.groups:
+        assert g.points.dtype == np.float64 and g.stamps_ns.dtype == np.int64
+        assert np.all(np.diff(g.index) > 0)
+        for j, i in enumerate(g.index.tolist()):
+            one = parse(raws[i])
+            assert (one.stamp_ns, one.frame_id) == (int(g.stamps_ns[j]), g.frame_id)  # type: ignore[attr-defined]
+            np.testing.assert_array_equal(g.points[j], one.points)  # type: ignore[attr-defined]
+            if one.labels is None:  # type: ignore[attr-defined]
+                assert g.labels is None
+            else:
+                assert g.labels is not None and g.labels.dtype == np.int64
+                np.testing.assert_array_equal(g.labels[j], one.labels)  # type: ignore[attr-defined]
+            seen.append(i)
+    for i, exc in batch.errors.items():
+        with pytest.raises(ConversionError) as info:
+            parse(raws[i])
+        assert str(info.value) == str(exc)
+        seen.append(i)
+    assert sorted(seen) == list(range(len(raws)))
+    assert len(batch.groups) <= groups_at_most
+
+
+def test_parse_pose_arrays_equals_one_by_one() -> None:
+    """Groups by layout (frame id, count, byte order); ignores padding bytes; malformed ones as the parser says."""
+    rng = np.random.default_rng(21)
+    raws: list[bytes] = []
+    for k in range(400):
+        n = 5 if rng.random() < 0.8 else int(rng.integers(0, 8))
+        frame_id = FRAME_IDS[int(rng.integers(0, 3))]
+        raw = pose_array_bytes(_random_stamp(rng), frame_id, _random_points(rng, n), big_endian=bool(k % 9 == 0))
+        if k % 5 == 1:  # rclpy's serializer (random orientations)
+            raw = serialize_message(_pose_array_msg(_random_stamp(rng), frame_id, _random_points(rng, n), rng))
+        if k % 7 == 3 and len(frame_id) % 4 != 3:  # padding bytes after the frame id: meaningless
+            pad = 16 + len(frame_id) + 1
+            raw = raw[:pad] + bytes(rng.integers(0, 256, (-(pad - 4)) % 4, dtype=np.uint8)) + raw[pad + (-(pad - 4)) % 4 :]
+        if k % 23 == 5:
+            raw = raw[: int(rng.integers(0, len(raw)))]  # truncated
+        if k % 31 == 7:
+            raw = b"\x00\x07" + raw[2:]  # unknown encapsulation
+        raws.append(raw)
+    raws += [raws[-1][:30]] * 3 + [b"", b"\x00\x01\x00\x00"]
+    batch = parse_pose_arrays(raws)
+    assert batch.errors and max(len(g.index) for g in batch.groups) > 100
+    _same_as_one_by_one(raws, batch, parse_pose_array, groups_at_most=60)
+    empty = parse_pose_arrays([])
+    assert (empty.n_messages, empty.groups, empty.errors) == (0, (), {})
+
+
+@pytest.mark.parametrize("label_field", [None, "label"])
+def test_parse_pointcloud2s_equals_one_by_one(label_field: str | None) -> None:
+    """Labelled and unlabelled, float32 and float64, any field layout, organised clouds, malformed ones."""
+    rng = np.random.default_rng(22)
+    raws: list[bytes] = []
+    for k in range(300):
+        n = 6 if rng.random() < 0.8 else int(rng.integers(0, 9))
+        labels = rng.permutation(n) if k % 3 else None
+        dtype = np.float32 if k % 4 else np.float64
+        raws.append(
+            pointcloud2_bytes(
+                _random_stamp(rng), "world", _random_points(rng, n), labels=labels, dtype=dtype, big_endian=k % 11 == 0
+            )
+        )
+    for k in range(4):  # shuffled and padded fields, organised: one layout each, many messages of it
+        height, width = (2, 4) if k % 2 else (1, 7)
+        msg, _ = _cloud_msg(
+            rng, _random_points(rng, height * width), frame_id="mocap", stamp_ns=0, height=height, width=width,
+            labels=rng.integers(-3, 9, height * width), label_type=PointField.INT16,
+        )
+        for _ in range(40):
+            msg.header.stamp = stamp_from_ns(_random_stamp(rng))
+            msg.data = rng.integers(0, 256, len(msg.data), dtype=np.uint8).tobytes()  # any bits: NaN, inf, sNaN
+            raws.append(serialize_message(msg))
+    good = pointcloud2_bytes(5, "world", rng.normal(size=(4, 3)), labels=np.arange(4))
+    raws += [good[:cut] for cut in range(0, len(good) - 1, 7)]  # truncated
+    raws += [_cloud_with_fields([_f("x", 0), _f("y", 4)], 12)] * 2  # no z
+    raws += [_cloud_with_fields([_f("x", 0), _f("y", 4), _f("z", 8)], 12, data_len=35)]
+    order = rng.permutation(len(raws))
+    raws = [raws[i] for i in order]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        batch = parse_pointcloud2s(raws, label_field=label_field)
+    assert batch.errors and max(len(g.index) for g in batch.groups) > 50
+    _same_as_one_by_one(
+        raws, batch, lambda raw: parse_pointcloud2(raw, label_field=label_field), groups_at_most=len(raws) // 4
+    )
 
 
 # --------------------------------------------------------------------------- serializers
