@@ -14,6 +14,7 @@ residual (:mod:`jointfit_core.serial`).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -47,6 +48,10 @@ __all__ = ["OnlineJoint", "JointOutput", "virtual_markers_template", "CALIBRATIO
 FloatArray = NDArray[np.float64]
 
 #: ``format`` and ``version`` keys of a saved calibration (:meth:`OnlineJoint.to_dict`).
+#: Outlier gate: the largest turn (deg) of a segment between the last frame in the statistics and a
+#: frame whose fit needed markers left out (a swap can leave a symmetric subset that fits turned over).
+GATE_MAX_TURN_DEG = 30.0
+
 CALIBRATION_FORMAT = "jointfit-calibration"
 CALIBRATION_VERSION = 1
 _KINDS = ("ball", "hinge")
@@ -540,6 +545,14 @@ class OnlineJoint:
         over the window (default True; see Notes). False gives the
         covariances of the closed forms on the window exactly; ``rho`` is
         measured and reported (:attr:`serial_inflation`) either way.
+    gate : float
+        Outlier gate (default 5; 0 disables it): once an estimate exists, a
+        segment whose pose fit leaves an rms marker residual above ``gate``
+        times that segment's noise estimate loses its worst-fitting marker
+        and is fitted again, down to 3 markers; if it still fails, the
+        segment is not posed in that frame. Swapped labels, ghost markers
+        and jumps are dropped before they reach the statistics or the
+        per-frame output (see Notes).
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -629,6 +642,7 @@ class OnlineJoint:
         templates: tuple[ArrayLike | None, ArrayLike | None] | None = None,
         noise_std: tuple[float | None, float | None] | None = None,
         serial_correlation: bool = True,
+        gate: float = 5.0,
     ) -> None:
         if kind not in _KINDS:
             raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
@@ -681,6 +695,11 @@ class OnlineJoint:
         if not isinstance(serial_correlation, (bool, np.bool_)):
             raise InputError(f"serial_correlation: expected True or False, got {serial_correlation!r}")
         self.serial_correlation = bool(serial_correlation)
+        if isinstance(gate, bool) or not isinstance(gate, (int, float, np.floating)) or not (
+            np.isfinite(gate) and gate >= 0.0
+        ):
+            raise InputError(f"gate: expected a number >= 0 (0: off), got {gate!r}")
+        self.gate = float(gate)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -711,6 +730,8 @@ class OnlineJoint:
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
         self._serial: SerialInflation | None = None
+        # Rotations of both segments in the last frame that entered the statistics (outlier gate).
+        self._R_last: FloatArray | None = None
         self._pairs: dict[bytes, _PairSet] = {}
         self._Y = np.zeros((0, 0, 3))
         self._none_missing: NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
@@ -1003,6 +1024,10 @@ class OnlineJoint:
         if self._frozen:
             entered[:] = False
         rows = np.flatnonzero(entered)
+        gate_var = self._gate_var()
+        if rows.size and gate_var is not None:
+            self._gated_block(Y, missing, sets, inverse, entered, st, gate_var)
+            return
         if rows.size:
             # a lag pair when the accepted frame before entered the statistics
             before_in = np.empty(m, dtype=bool)
@@ -1010,6 +1035,52 @@ class OnlineJoint:
             before_in[1:] = entered[:-1]
             self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows)
         self._prev_in = bool(entered[-1])
+
+    def _gated_block(
+        self,
+        Y: FloatArray,
+        missing: NDArray[np.bool_],
+        sets: list[_PairSet],
+        inverse: NDArray[np.intp],
+        entered: NDArray[np.bool_],
+        st: FloatArray | None,
+        gate_var: FloatArray,
+    ) -> None:
+        """:meth:`_update_block` with the outlier gate: runs of passing frames in bulk, failing frames one by one.
+
+        A frame fails when a segment's residual exceeds the gate; it goes
+        through :meth:`_add` (marker removal, refit), exactly as
+        :meth:`update` would take it, between the bulk pushes of the frames
+        before and after it.
+        """
+        rows = np.flatnonzero(entered)
+        _, _, ss = _poses_many(
+            Y[rows],
+            np.stack([ps.xc_t for ps in sets])[inverse[rows]],
+            np.stack([ps.wn for ps in sets])[inverse[rows]],
+            np.stack([ps.n for ps in sets])[inverse[rows]],
+            np.stack([ps.xbar for ps in sets])[inverse[rows]],
+            np.stack([ps.xx for ps in sets])[inverse[rows]],
+        )
+        dof = np.stack([ps.dof for ps in sets])[inverse[rows]]
+        failing = rows[((ss > gate_var * dof) & (dof > 0.0)).any(axis=1)]
+        m = Y.shape[0]
+        start = 0
+        for f in [*failing.tolist(), m]:
+            run = np.flatnonzero(entered[start:f]) + start
+            if run.size:
+                before_in = np.empty(run.size, dtype=bool)
+                before_in[0] = self._prev_in if run[0] == start else False
+                before_in[1:] = np.diff(run) == 1
+                if run[0] > start:
+                    before_in[0] = bool(entered[run[0] - 1])
+                self._push_block(Y[run], sets, inverse[run], before_in, st, run)
+            if start < f:
+                self._prev_in = bool(entered[f - 1])
+            if f < m:
+                self._Y[...] = Y[f]
+                self._add(missing[f], None if st is None else float(st[f]))
+            start = f + 1
 
     def _push_block(
         self,
@@ -1056,6 +1127,7 @@ class OnlineJoint:
         self._sums.push_many(c, None if st is None else st[rows])
         self._dirty = True
         self._z_prev[...] = z[-1]
+        self._R_last = R[-1].copy()
 
     def _fast_fill(self, parent: ArrayLike, child: ArrayLike) -> bool:
         """Copy a well-shaped frame straight into the pose buffer; False to take the checked path.
@@ -1124,6 +1196,64 @@ class OnlineJoint:
             self._pairs[key] = ps
         return ps
 
+    def _gate_var(self) -> FloatArray | None:
+        """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
+
+        None while the gate is off or there is no noise estimate yet (before the first estimate).
+        """
+        if self.gate <= 0.0 or self._solution is None or min(self._sigma) <= 0.0:
+            return None
+        return np.square(self.gate * np.asarray(self._sigma))
+
+    def _gated(
+        self, missing: NDArray[np.bool_], ps: _PairSet, R: FloatArray, d: FloatArray, fail: NDArray[np.bool_]
+    ) -> NDArray[np.bool_]:
+        """The missing-marker mask after the gate, for the segments whose fit failed it.
+
+        For a failing segment, the subsets without one (then two) of its
+        visible markers, keeping at least 3, are fitted; the best one (least
+        residual) that passes the gate AND turns the segment by at most
+        :data:`GATE_MAX_TURN_DEG` from the last frame in the statistics is
+        kept (its left-out markers counted as ``<segment>_gated_markers``). The
+        turn test catches a swap that leaves a symmetric subset (e.g. the
+        two swapped markers equidistant from a third: a 180 deg turn fits it
+        exactly). Without such a subset the segment loses all its markers
+        (not posed; counted as ``<segment>_gated``).
+        """
+        assert self._parent is not None and self._child is not None
+        gate_var = self._gate_var()
+        assert gate_var is not None
+        out = missing.copy()
+        cos_max = np.cos(np.deg2rad(GATE_MAX_TURN_DEG))
+        for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
+            if not fail[k] or vs is None or seg.template is None:
+                continue
+            idx = vs.index
+            x, y = seg.template[idx], self._Y[k, idx]
+            best: tuple[float, tuple[int, ...]] | None = None
+            for n_out in (1, 2):
+                if idx.size - n_out < MIN_POSE_MARKERS:
+                    break
+                for drop in itertools.combinations(range(idx.size), n_out):
+                    keep = np.delete(np.arange(idx.size), drop)
+                    Rk, dk = _kabsch(y[keep], x[keep])
+                    ss = float(np.sum((x[keep] @ Rk.T + dk - y[keep]) ** 2))
+                    if ss > gate_var[k] * (3 * keep.size - 6):
+                        continue
+                    if self._R_last is not None and (np.trace(Rk @ self._R_last[k].T) - 1.0) / 2.0 < cos_max:
+                        continue
+                    if best is None or ss < best[0]:
+                        best = (ss, drop)
+                if best is not None:
+                    break  # as few markers left out as possible
+            if best is None:
+                out[k, : seg.n_markers] = True
+                self._drop(f"{seg.name}_gated")
+            else:
+                out[k, idx[list(best[1])]] = True
+                self.dropped[f"{seg.name}_gated_markers"] = self.dropped.get(f"{seg.name}_gated_markers", 0) + len(best[1])
+        return out
+
     def _add(self, missing: NDArray[np.bool_], stamp: float | None) -> JointOutput | None:
         """Pose both segments from ``self._Y`` (filled, ``missing`` rows NaN) and update the statistics."""
         assert self._parent is not None and self._child is not None
@@ -1139,6 +1269,11 @@ class OnlineJoint:
         if missing is not self._none_missing:
             Y[missing] = 0.0  # _poses needs zeros where a marker is missing
         R, d, ss = _poses(Y, ps)
+        gate_var = self._gate_var()
+        if gate_var is not None:
+            fail = (ss > gate_var * ps.dof) & (ps.dof > 0.0)
+            if fail.any():
+                return self._add(self._gated(missing, ps, R, d, fail), stamp)
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view
@@ -1164,6 +1299,7 @@ class OnlineJoint:
             self._dirty = True
             self._z_prev[...] = z
             self._prev_in = True
+            self._R_last = R.copy()
         else:
             self._prev_in = False
         if ps.parent is None or self._solution is None:
@@ -1353,6 +1489,7 @@ class OnlineJoint:
             "noise_std_fixed": [v is not None for v in self._noise_arg],
             "templates_fixed": [v is not None for v in self._templates_arg],
             "serial_correlation": self.serial_correlation,
+            "gate": self.gate,
             "serial_inflation": None if self._serial is None else _serial_to_dict(self._serial),
             "estimate": fit,
         }
@@ -1392,6 +1529,7 @@ class OnlineJoint:
                     for side, fixed in zip(("parent", "child"), data.get("noise_std_fixed", [False, False]), strict=True)
                 ),
                 serial_correlation=data.get("serial_correlation", True),  # absent before it existed
+                gate=float(data.get("gate", 5.0)),
             )
             tp = np.array(data["template_parent"], dtype=np.float64)
             tc = np.array(data["template_child"], dtype=np.float64)

@@ -245,6 +245,14 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "template_frames", "int", 50, "Fully visible frames averaged into each segment's template.", minimum=1
     ),
     ParamSpec(
+        "outlier_gate",
+        "double",
+        5.0,
+        "Outlier gate: a segment whose rms marker residual exceeds this many times its noise estimate loses its "
+        "worst marker (down to 3) or is not posed in that frame (swaps, ghosts, jumps); 0: off.",
+        minimum=0.0,
+    ),
+    ParamSpec(
         "calibration_file",
         "string",
         "",
@@ -288,6 +296,7 @@ class JointConfig:
     window_s: float
     half_life_s: float
     template_frames: int
+    outlier_gate: float
     calibration_file: str
     axis_toward_marker: str
     local_frame_id: str
@@ -446,6 +455,7 @@ def _joint_config(name: str, values: Mapping[str, Any], marker_names: Sequence[s
         window_s=v["window_s"],
         half_life_s=v["half_life_s"],
         template_frames=v["template_frames"],
+        outlier_gate=v["outlier_gate"],
         calibration_file=v["calibration_file"],
         axis_toward_marker=marker,
         local_frame_id=v["local_frame_id"] or f"{name}_parent",

@@ -135,6 +135,7 @@ class JointRunner:
         return OnlineJoint(
             self.cfg.type,
             template_frames=self.cfg.template_frames,
+            gate=self.cfg.outlier_gate,
             templates=self._template_args,
             noise_std=self._noise_args,
             n_markers=(len(self.parent_rows) or 4, len(self.child_rows) or 4),  # 4 virtual markers for poses
