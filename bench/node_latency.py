@@ -73,7 +73,7 @@ from typing import IO
 
 import numpy as np
 import yaml
-from _common import markdown_table
+from _common import cpu_name, markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
 HELPERS = Path(__file__).resolve().parent / "_latency_helpers.py"
@@ -538,17 +538,6 @@ def summary(samples: Sequence[Sample], rounds: int) -> tuple[str, list[str]]:
 # ----------------------------------------------------------------------------- main
 
 
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
 def _machine() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -559,7 +548,7 @@ def _machine() -> str:
     except PackageNotFoundError:
         rclpy_version = "unknown"
     return (
-        f"{platform.platform()}, {_cpu_name()}, {os.cpu_count()} CPUs; Python {platform.python_version()}, "
+        f"{platform.platform()}, {cpu_name()}, {os.cpu_count()} CPUs; Python {platform.python_version()}, "
         f"numpy {np.__version__}, rclpy {rclpy_version}, "
         f"RMW {get_rmw_implementation_identifier()}; "
         f"load average at start {', '.join(f'{x:.2f}' for x in os.getloadavg())}"
