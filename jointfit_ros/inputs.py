@@ -285,6 +285,12 @@ class MessageRouter:
         walked in order for the rest (joints pairing markers with a pose
         topic, pose topics, problems and frame ids), unless there are none.
         """
+        if any(r.chained for r in self.marker_runners):
+            # Chain joints need this frame's outputs of the joints before them: one message at a time.
+            out: list[Routed] = []
+            for topic, raw in messages:
+                out.extend(self.markers(raw) if topic is None else self.pose(topic, raw))
+            return out
         at = [i for i, (topic, _) in enumerate(messages) if topic is None]
         self.counters["messages"] += len(at)
         index, stamps, frame_ids, frames, problems = self._parse_markers([messages[i][1] for i in at])
@@ -295,7 +301,7 @@ class MessageRouter:
                 if runner.matcher is None:
                     runner.markers_block(stamps, frames)
         paired = [r for r in self.marker_runners if r.matcher is not None]
-        out: list[Routed] = []
+        out = []
         if not paired and len(at) == len(messages):
             for problem in problems:
                 self._problem(*problem[1:])
@@ -334,9 +340,11 @@ class MessageRouter:
         if self.recorded is not None:
             self.recorded.append((stamp_ns, frame))
         out = []
+        chain: dict[str, FloatArray] = {}  # this frame's outputs, virtual markers of later chain joints
         for runner in self.marker_runners:
-            result = runner.markers_frame(stamp_ns, frame)
+            result = runner.markers_frame(stamp_ns, frame, chain)
             if result is not None:
+                chain[runner.cfg.name] = result.position
                 out.append(Routed(runner, stamp_ns, frame_id, result))
         return out
 

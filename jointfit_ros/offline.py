@@ -270,8 +270,17 @@ def _marker_events(run: FitRun, data: MarkerData, step: int) -> Iterator[int]:
     start = 0
     while start < frames.shape[0]:
         stop = min(frames.shape[0], (start // step + 1) * step, start + MAX_BLOCK)
-        for t in run.traces:
-            t.runner.markers_block(stamps_ns[start:stop], frames[start:stop])
+        if any(t.runner.chained for t in run.traces):
+            # Chain joints take this frame's outputs of the joints before them: one frame at a time.
+            for k in range(start, stop):
+                chain: dict[str, FloatArray] = {}
+                for t in run.traces:
+                    out = t.runner.markers_frame(int(stamps_ns[k]), frames[k], chain)
+                    if out is not None:
+                        chain[t.runner.cfg.name] = out.position
+        else:
+            for t in run.traces:
+                t.runner.markers_block(stamps_ns[start:stop], frames[start:stop])
         yield stop - start
         start = stop
 

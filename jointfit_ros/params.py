@@ -207,6 +207,19 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("parent_markers", "string_array", [], "Names (from marker_names) of the parent segment's markers, >= 3."),
     ParamSpec("child_markers", "string_array", [], "Names (from marker_names) of the child segment's markers, >= 3."),
     ParamSpec(
+        "parent_chain",
+        "string_array",
+        [],
+        "Skeleton chain (Pham et al. V-B): earlier joints (from `joints`) whose per-frame world centre (ball) or "
+        "axis point (hinge) is added to the parent segment's markers as a virtual marker.",
+    ),
+    ParamSpec(
+        "child_chain",
+        "string_array",
+        [],
+        "As parent_chain, for the child segment (e.g. the hip centre as a marker of the thigh).",
+    ),
+    ParamSpec(
         "parent_pose_topic",
         "string",
         "",
@@ -288,6 +301,8 @@ class JointConfig:
     type: str
     parent_markers: tuple[str, ...]
     child_markers: tuple[str, ...]
+    parent_chain: tuple[str, ...]
+    child_chain: tuple[str, ...]
     parent_pose_topic: str
     child_pose_topic: str
     pose_translation_sd: float
@@ -390,8 +405,8 @@ def _minimal_hint(v: Mapping[str, Any], name: str) -> str:
     """What Pham et al.'s marker-count rules say about a joint with fewer than 3 markers on a side."""
     from jointfit_core.identifiability import marker_count_identifiability
 
-    n_p = 4 if v["parent_pose_topic"] else len(v["parent_markers"])
-    n_c = 4 if v["child_pose_topic"] else len(v["child_markers"])
+    n_p = 4 if v["parent_pose_topic"] else len(v["parent_markers"]) + len(v["parent_chain"])
+    n_c = 4 if v["child_pose_topic"] else len(v["child_markers"]) + len(v["child_chain"])
     if min(n_p, n_c) < 1:
         return ""
     verdict = marker_count_identifiability(v["type"], n_p, n_c)
@@ -403,20 +418,38 @@ def _minimal_hint(v: Mapping[str, Any], name: str) -> str:
     )
 
 
-def _joint_config(name: str, values: Mapping[str, Any], marker_names: Sequence[str]) -> JointConfig:
+def _joint_config(
+    name: str, values: Mapping[str, Any], marker_names: Sequence[str], earlier: Mapping[str, JointConfig]
+) -> JointConfig:
     v = _values(JOINT_PARAMS, values, name + ".")
     known = set(marker_names)
     for side in ("parent", "child"):
         markers = v[f"{side}_markers"]
         topic = v[f"{side}_pose_topic"]
+        chain = v[f"{side}_chain"]
+        for source in chain:
+            if source not in earlier:
+                raise ConfigError(
+                    f"{name}.{side}_chain: {source!r} is not a joint listed before {name!r} in joints "
+                    f"(earlier joints: {list(earlier)})"
+                )
+            if not (earlier[source].parent_markers or earlier[source].child_markers):
+                raise ConfigError(f"{name}.{side}_chain: {source!r} reads only pose topics; chain joints read markers")
+        if len(set(chain)) != len(chain):
+            raise ConfigError(f"{name}.{side}_chain: a joint is listed twice: {chain!r}")
         if topic:
-            if markers:
-                raise ConfigError(f"{name}.{side}_markers: give markers or {name}.{side}_pose_topic, not both")
+            if markers or chain:
+                raise ConfigError(
+                    f"{name}.{side}_markers/{side}_chain: give markers (and chain joints) or "
+                    f"{name}.{side}_pose_topic, not both"
+                )
             continue
-        if len(markers) < 3:
+        if chain and not markers:
+            raise ConfigError(f"{name}.{side}_chain: needs at least one real marker in {name}.{side}_markers too")
+        if len(markers) + len(chain) < 3:
             raise ConfigError(
-                f"{name}.{side}_markers: expected at least 3 marker names (or {name}.{side}_pose_topic), "
-                f"got {markers!r}" + _minimal_hint(v, name)
+                f"{name}.{side}_markers: expected at least 3 marker names (with {name}.{side}_chain joints; or "
+                f"{name}.{side}_pose_topic), got {markers!r}" + _minimal_hint(v, name)
             )
         unknown = [m for m in markers if m not in known]
         if unknown:
@@ -447,6 +480,8 @@ def _joint_config(name: str, values: Mapping[str, Any], marker_names: Sequence[s
         type=v["type"],
         parent_markers=tuple(v["parent_markers"]),
         child_markers=tuple(v["child_markers"]),
+        parent_chain=tuple(v["parent_chain"]),
+        child_chain=tuple(v["child_chain"]),
         parent_pose_topic=v["parent_pose_topic"],
         child_pose_topic=v["child_pose_topic"],
         pose_translation_sd=v["pose_translation_sd"],
@@ -490,7 +525,10 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         raise ConfigError(f"marker_names: a name is listed twice: {names!r}")
     if v["unlabelled"] and (v["marker_type"] != "pointcloud2" or v["label_field"]):
         raise ConfigError("unlabelled: only for marker_type pointcloud2 without a label_field")
-    configs = tuple(_joint_config(j, values, names) for j in joints)
+    done: dict[str, JointConfig] = {}
+    for j in joints:
+        done[j] = _joint_config(j, values, names, done)
+    configs = tuple(done.values())
     if not names and any(c.parent_markers or c.child_markers for c in configs):
         raise ConfigError("marker_names: expected the names of the points of marker_topic, got none")
     return NodeConfig(

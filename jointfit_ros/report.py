@@ -102,6 +102,8 @@ def segment_geometry(run: FitRun, trace: JointTrace) -> SegmentGeometry | None:
     tp, tc = r.estimator.templates
     if run.frames is None or tp is None or tc is None or not len(r.parent_rows) or not len(r.child_rows):
         return None
+    if r.chained:
+        return None  # virtual markers are not in the frames
     parent = run.frames[:, r.parent_rows]
     child = run.frames[:, r.child_rows]
     with np.errstate(invalid="ignore"):

@@ -106,6 +106,7 @@ class JointRunner:
         self.parent_rows = np.array([node.marker_index(m) for m in cfg.parent_markers], dtype=np.intp)
         self.child_rows = np.array([node.marker_index(m) for m in cfg.child_markers], dtype=np.intp)
         self.uses_marker_topic = bool(cfg.parent_markers or cfg.child_markers)
+        self.chained = bool(cfg.parent_chain or cfg.child_chain)
         self.matcher: StampMatcher | None = None
         self._virtual: FloatArray | None = None
         templates: tuple[FloatArray | None, FloatArray | None] = (None, None)
@@ -138,7 +139,11 @@ class JointRunner:
             gate=self.cfg.outlier_gate,
             templates=self._template_args,
             noise_std=self._noise_args,
-            n_markers=(len(self.parent_rows) or 4, len(self.child_rows) or 4),  # 4 virtual markers for poses
+            # 4 virtual markers for poses; chain joints add one point each
+            n_markers=(
+                (len(self.parent_rows) + len(self.cfg.parent_chain)) or 4,
+                (len(self.child_rows) + len(self.cfg.child_chain)) or 4,
+            ),
             **self.cfg.window_kwargs(),
         )
 
@@ -170,8 +175,19 @@ class JointRunner:
 
     # ------------------------------------------------------------------ inputs
 
-    def markers_frame(self, stamp_ns: int, frame: FloatArray) -> JointOutput | None:
-        """A frame of all configured markers (P, 3) from the marker topic."""
+    def markers_frame(
+        self, stamp_ns: int, frame: FloatArray, chain: dict[str, FloatArray] | None = None
+    ) -> JointOutput | None:
+        """A frame of all configured markers (P, 3) from the marker topic.
+
+        ``chain`` maps earlier joints' names to this frame's world output
+        position (a virtual marker for ``parent_chain`` / ``child_chain``;
+        missing when that joint has no output in this frame).
+        """
+        if self.chained:
+            parent = self._with_chain(frame[self.parent_rows], self.cfg.parent_chain, chain or {})
+            child = self._with_chain(frame[self.child_rows], self.cfg.child_chain, chain or {})
+            return self.process(stamp_ns, parent, child, frame)
         if self.matcher is None:
             return self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
         if self.cfg.parent_markers:
@@ -226,6 +242,13 @@ class JointRunner:
         self._stamps.extend(stamps[-_RATE_SAMPLES:].tolist())
         if with_outputs:
             self.counters["outputs"] += (est.n_frames_seen - seen) - (est.dropped.get("parent_not_posed", 0) - not_posed)
+
+    @staticmethod
+    def _with_chain(markers: FloatArray, names: tuple[str, ...], chain: dict[str, FloatArray]) -> FloatArray:
+        if not names:
+            return markers
+        nan = np.full(3, np.nan)
+        return np.concatenate([markers, np.stack([chain.get(n, nan) for n in names])])
 
     def pose(self, source: int, stamp_ns: int, R: FloatArray, d: FloatArray) -> JointOutput | None:
         """A rigid-body pose of the parent (``source`` 0) or the child (1), as virtual markers."""
