@@ -63,7 +63,9 @@ class WindowSpec:
         (``stamp > newest - seconds``); needs stamps.
     half_life : float or None
         Exponential forgetting: a frame's weight halves every ``half_life``
-        frames.
+        frames. ``inf``: no forgetting, the sums of every frame since the
+        start, in O(1) memory (what ``jointfit fit`` uses for a whole
+        recording).
     half_life_s : float or None
         Exponential forgetting in time: a frame's weight halves every
         ``half_life_s`` seconds of stamp time; needs stamps.
@@ -90,6 +92,8 @@ class WindowSpec:
             return f"{self.frames} frames"
         if self.seconds is not None:
             return f"{self.seconds:g} s"
+        if self.half_life == np.inf or self.half_life_s == np.inf:
+            return "all frames (no forgetting)"
         if self.half_life is not None:
             return f"half-life {self.half_life:g} frames"
         return f"half-life {self.half_life_s:g} s"
@@ -129,8 +133,8 @@ def window_spec(
         num = float(value)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected a positive number, got {value!r}") from None
-    if not np.isfinite(num) or num <= 0.0:
-        raise InputError(f"{name}: expected a positive finite number, got {value!r}")
+    if np.isnan(num) or num <= 0.0 or (num == np.inf and name == "window_s"):
+        raise InputError(f"{name}: expected a positive finite number (half-lives may be inf), got {value!r}")
     if name == "window_s":
         return WindowSpec(seconds=num)
     if name == "half_life":

@@ -11,9 +11,10 @@ messages, in blocks (:meth:`MessageRouter.route_many
 every joint ends in the state message-by-message routing (the node's) gives
 it, bit for bit, at a fraction of the cost; joints fed by the marker topic
 alone make no per-frame world outputs. With ``whole_recording=True`` (the
-default of ``jointfit fit``) every joint's window is made longer than the
-recording, so the final estimate is the batch estimate of all of it; a node
-whose window covers the recording ends with the same numbers.
+default of ``jointfit fit``) every joint keeps the sums of every frame (no
+forgetting, O(1) memory), so the final estimate is the batch estimate of all
+of it; a node whose window covers the recording ends with the same numbers
+to rounding (its ring-buffer window adds in another order).
 
 Along the way it keeps what the report shows: the estimate and its
 covariance at evenly spaced checkpoints (the convergence curve, taken
@@ -26,6 +27,7 @@ marker frames.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -139,7 +141,7 @@ class FitRun:
     kind : str
         ``"bag"``, ``"c3d"`` or ``"trc"``.
     cfg : NodeConfig
-        The configuration as run (windows widened with ``whole_recording``,
+        The configuration as run (no forgetting with ``whole_recording``,
         calibration files not loaded).
     traces : list of JointTrace
         One per joint, in the configuration's order.
@@ -188,13 +190,18 @@ def input_kind(path: str | os.PathLike[str]) -> str:
     raise InputError(f"{p}: expected a rosbag2 bag (a directory, .db3 or .mcap), a .c3d or a .trc file")
 
 
-def _offline_config(cfg: NodeConfig, window: int | None) -> NodeConfig:
-    """Calibration files never loaded (the fit estimates from the recording); windows widened."""
+def _offline_config(cfg: NodeConfig, whole_recording: bool) -> NodeConfig:
+    """Calibration files never loaded (the fit estimates from the recording).
+
+    ``whole_recording``: no forgetting (``half_life_s = inf``): the sums of
+    every frame, in O(1) memory, where a frame window as long as the recording
+    would keep every frame's record (262 numbers) for removal.
+    """
     joints = []
     for j in cfg.joints:
         j = dataclasses.replace(j, calibration_file="")
-        if window is not None:
-            j = dataclasses.replace(j, window=window, window_s=0.0, half_life_s=0.0)
+        if whole_recording:
+            j = dataclasses.replace(j, window_s=0.0, half_life_s=math.inf)
         joints.append(j)
     return dataclasses.replace(cfg, joints=tuple(joints))
 
@@ -311,7 +318,7 @@ def run_fit(
         bags are read on its ``marker_topic`` (as ``marker_type``) and pose
         topics; C3D/TRC files give the markers named in ``marker_names``.
     whole_recording : bool
-        Widen every joint's window to the whole recording (default). False
+        Every joint's estimate from all frames of the recording (default). False
         keeps the configured windows: the result is then what the node holds
         at the end of the recording.
     n_checkpoints : int
@@ -341,7 +348,7 @@ def run_fit(
     kind = input_kind(file)
     if kind == "bag":
         topics, total = _bag_topics(file, cfg)
-        run_cfg = _offline_config(cfg, total + 1 if whole_recording else None)
+        run_cfg = _offline_config(cfg, whole_recording)
         run = FitRun(file, kind, run_cfg, [])
         run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
         run.router = MessageRouter(run_cfg, [t.runner for t in run.traces])
@@ -352,7 +359,7 @@ def run_fit(
     else:
         data = _read_markers(file, kind, cfg)
         total = data.n_frames
-        run_cfg = _offline_config(cfg, total + 1 if whole_recording else None)
+        run_cfg = _offline_config(cfg, whole_recording)
         run = FitRun(file, kind, run_cfg, [], units=data.units, rate=data.rate)
         run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
         step = max(1, total // max(n_checkpoints, 1))

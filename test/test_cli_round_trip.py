@@ -136,5 +136,9 @@ def test_replayed_bag_in_node_equals_fit(tmp_path: Path, storage: str, capsys: p
             if isinstance(value, list):
                 np.testing.assert_allclose(np.array(a["estimate"][key], dtype=float), np.array(value, dtype=float),
                                            rtol=1e-9, atol=1e-15, err_msg=f"{name}.{key}")
+            elif isinstance(value, float):
+                # near machine precision: the node's frame window and the fit's no-forgetting sums add
+                # the same frames in a different order
+                assert a["estimate"][key] == pytest.approx(value, rel=1e-9), f"{name}.{key}"
             else:
                 assert a["estimate"][key] == value, f"{name}.{key}"
