@@ -151,9 +151,15 @@ def fit_main(argv: Sequence[str]) -> int:
         summary = fit_summary(run, elapsed_s=time.perf_counter() - started, version=__version__)
         # Everything is computed before anything is written.
         calibrations: dict[str, dict[str, Any]] = {}
+        configured = {j.name: j for j in cfg.joints}
         for trace, joint in zip(run.traces, summary["joints"], strict=True):
             if trace.final is not None and trace.final.identifiable:
-                calibrations[joint["name"]] = trace.runner.estimator.to_dict()
+                data = trace.runner.estimator.to_dict()
+                # The estimate is the recording's; the window a node resumes with (after ~/freeze false)
+                # is the configured one, not the fit's no-forgetting sums.
+                data.update(dict.fromkeys(("window", "window_s", "half_life", "half_life_s")))
+                data.update(configured[joint["name"]].window_kwargs())
+                calibrations[joint["name"]] = data
         figures = {} if opts.no_report else {t.runner.cfg.name: joint_figure(run, t) for t in run.traces}
         for joint in summary["joints"]:
             name = joint["name"]

@@ -183,6 +183,7 @@ def test_write_calibration_installs_for_the_node(
     cfg = node_config(params_from_file(config))
     runner = JointRunner(cfg.joints[0], cfg)
     assert runner.loaded_from == str(installed) and runner.estimator.frozen
+    assert runner.estimator.spec.frames == 500  # thawed, it resumes with the configured window
     saved = load_calibration(tmp_path / "o" / "hip.calibration.yaml")["estimate"]
     np.testing.assert_allclose(runner.estimator.solution.centre_parent, saved["centre_parent"], rtol=1e-12)
 
