@@ -732,6 +732,8 @@ class OnlineJoint:
         self._serial: SerialInflation | None = None
         # Rotations of both segments in the last frame that entered the statistics (outlier gate).
         self._R_last: FloatArray | None = None
+        self._gate_key: tuple[float, bool, tuple[float, float]] | None = None
+        self._gate_cache: FloatArray | None = None
         self._pairs: dict[bytes, _PairSet] = {}
         self._Y = np.zeros((0, 0, 3))
         self._none_missing: NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
@@ -1200,10 +1202,16 @@ class OnlineJoint:
         """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
 
         None while the gate is off or there is no noise estimate yet (before the first estimate).
+        Cached: it changes only with an estimate (per-frame cost).
         """
-        if self.gate <= 0.0 or self._solution is None or min(self._sigma) <= 0.0:
-            return None
-        return np.square(self.gate * np.asarray(self._sigma))
+        key = (self.gate, self._solution is None, self._sigma)
+        if key != self._gate_key:
+            self._gate_key = key
+            if self.gate <= 0.0 or self._solution is None or min(self._sigma) <= 0.0:
+                self._gate_cache = None
+            else:
+                self._gate_cache = np.square(self.gate * np.asarray(self._sigma))
+        return self._gate_cache
 
     def _gated(
         self, missing: NDArray[np.bool_], ps: _PairSet, R: FloatArray, d: FloatArray, fail: NDArray[np.bool_]
@@ -1271,8 +1279,10 @@ class OnlineJoint:
         R, d, ss = _poses(Y, ps)
         gate_var = self._gate_var()
         if gate_var is not None:
-            fail = (ss > gate_var * ps.dof) & (ps.dof > 0.0)
-            if fail.any():
+            dof = ps.dof
+            # scalar tests: this runs every frame
+            if (ss[0] > gate_var[0] * dof[0] and dof[0] > 0.0) or (ss[1] > gate_var[1] * dof[1] and dof[1] > 0.0):
+                fail = (ss > gate_var * dof) & (dof > 0.0)
                 return self._add(self._gated(missing, ps, R, d, fail), stamp)
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
