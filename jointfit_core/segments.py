@@ -877,6 +877,27 @@ def _model_error_inflation(
     return residual_inflation(z, 6)
 
 
+def _hinge_model_error(
+    Q: FloatArray,
+    t: FloatArray,
+    st: _HingeState,
+    bases: tuple[FloatArray, FloatArray, FloatArray],
+    Wp6: FloatArray,
+    Wc6: FloatArray,
+    used: BoolArray,
+) -> Inflation:
+    """Inflation of the hinge covariance from its whitened 5-dof residuals (used frames, in time order)."""
+    res, _, W, _ = _hinge_psi(Q, t, st, bases, Wp6, Wc6, False)
+    z = np.full((len(used), 5), np.nan)
+    # The direction rows (unitless) and the position rows (lengths) are whitened each by their own
+    # block, so that the result does not depend on the length unit.
+    for rows in (slice(0, 2), slice(2, 5)):
+        lam, V = np.linalg.eigh(W[:, rows, rows])
+        lam_safe = np.maximum(lam, 1e-300)
+        z[used, rows] = np.einsum("nij,nj->ni", V, np.einsum("nji,nj->ni", V, res[:, rows]) / np.sqrt(lam_safe))
+    return max(residual_inflation(z[:, :2], 4), residual_inflation(z[:, 2:], 5), key=lambda inf: inf.factor)
+
+
 def fit_centre_two_segments(
     parent: ArrayLike,
     child: ArrayLike,
@@ -1269,6 +1290,7 @@ def fit_axis_two_segments(
     *,
     reference_direction: ArrayLike | None = None,
     weighted: bool = True,
+    model_error: bool = True,
 ) -> SegmentsAxisFit:
     """Hinge axis between two moving segments from their rigid poses.
 
@@ -1287,6 +1309,12 @@ def fit_axis_two_segments(
         ``True`` (default): Gauss-Markov with the per-frame noise of the
         constraints; ``False``: the unweighted least-squares solution with a
         sandwich covariance.
+    model_error : bool
+        ``True`` (default): grow the covariances by the model error seen in
+        the whitened hinge residuals (their size beyond the marker noise and
+        their frame-to-frame correlation, as for the ball joint:
+        :func:`jointfit_core.model_error.residual_inflation`), so that skin
+        motion does not leave them over-confident.
 
     Returns
     -------
@@ -1388,6 +1416,8 @@ def fit_axis_two_segments(
     noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
     use_weights = weighted and prep.noisy
     st, cov, (Bp, Bc, Z) = _hinge_solve(Q, t, st, noise_p, noise_c, Wp6, Wc6, use_weights)
+    if model_error and prep.noisy:
+        cov = cov * _hinge_model_error(Q, t, st, (Bp, Bc, Z), Wp6, Wc6, used).factor
     n_p, n_c = st.n_p, st.n_c
     if n_p @ ref < 0.0:  # cannot flip in a few small steps, but keep the promise
         n_p, n_c = -n_p, -n_c
