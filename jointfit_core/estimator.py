@@ -48,6 +48,10 @@ __all__ = ["OnlineJoint", "JointOutput", "virtual_markers_template", "CALIBRATIO
 FloatArray = NDArray[np.float64]
 
 #: ``format`` and ``version`` keys of a saved calibration (:meth:`OnlineJoint.to_dict`).
+#: Template building: a candidate frame is discarded when an inter-marker distance deviates from the
+#: median of the candidates by more than this many times the typical (median) largest deviation.
+TEMPLATE_DEV_FACTOR = 5.0
+
 #: Outlier gate: the largest turn (deg) of a segment between the last frame in the statistics and a
 #: frame whose fit needed markers left out (a swap can leave a symmetric subset that fits turned over).
 GATE_MAX_TURN_DEG = 30.0
@@ -312,33 +316,53 @@ class _Segment:
         self.n_markers = n_markers
         self.template_frames = template_frames
         self.template: FloatArray | None = None
-        self._x0: FloatArray | None = None
-        self._acc = np.zeros((n_markers, 3))
-        self._count = 0
+        self.template_sigma = 0.0  # marker noise seen in the template frames (input units)
+        self._frames: list[FloatArray] = []  # centred, fully visible candidate frames
+        self._seen = 0
         self._cache: dict[bytes, _VisibleSet | None] = {}
         self._full_rot = 0.0
 
     @property
     def template_progress(self) -> int:
-        return self._count
+        return len(self._frames)
 
     def add_template_frame(self, y: FloatArray) -> None:
-        """Use a fully visible frame for the template (aligned to the first one and averaged)."""
+        """Use a fully visible frame for the template (consistent frames aligned and averaged).
+
+        Once ``template_frames`` candidates are collected, frames whose
+        inter-marker distances (rigid invariants) deviate from the median
+        ones by more than :data:`TEMPLATE_DEV_FACTOR` times the typical
+        deviation are discarded (a label swap or a ghost during the first
+        frames would otherwise be built into the template) and collection
+        goes on; after ``4 * template_frames`` candidates the consistent ones
+        are used whatever their number. The template is their average, each
+        aligned (Kabsch) to the first consistent frame.
+        """
         if self.template is not None or np.isnan(y).any():
             return
-        if self._x0 is None:
-            x0 = y - y.mean(axis=0)
-            if not _shape_ok(x0):
-                return
-            self._x0 = x0
-            aligned = x0
+        x = y - y.mean(axis=0)
+        if not _shape_ok(x):
+            return
+        self._frames.append(x)
+        self._seen += 1
+        if len(self._frames) < self.template_frames:
+            return
+        X = np.stack(self._frames)
+        D = np.linalg.norm(X[:, :, None, :] - X[:, None, :, :], axis=3)
+        dev = np.abs(D - np.median(D, axis=0)).max(axis=(1, 2))
+        typical = float(np.median(dev))
+        keep = dev <= TEMPLATE_DEV_FACTOR * typical + 1e-12 * float(D.max())
+        if keep.all() or self._seen >= 4 * self.template_frames:
+            kept = X[keep]
+            x0 = kept[0]
+            aligned = np.stack([x0] + [(x - d) @ R for x in kept[1:] for R, d in [_kabsch(x, x0)]])
+            mean = aligned.mean(axis=0)
+            dof = max(aligned.shape[0] * (3 * aligned.shape[1] - 6) - (3 * aligned.shape[1] - 6), 1)
+            self.template_sigma = float(np.sqrt(np.sum((aligned - mean) ** 2) / dof))
+            self._frames = []
+            self.set_template(mean)
         else:
-            R, d = _kabsch(y, self._x0)
-            aligned = (y - d) @ R
-        self._acc += aligned
-        self._count += 1
-        if self._count >= self.template_frames:
-            self.set_template(self._acc / self._count)
+            self._frames = [x for x, k in zip(self._frames, keep, strict=True) if k]
 
     def set_template(self, template: FloatArray) -> None:
         x = np.asarray(template, dtype=np.float64)
@@ -1201,16 +1225,22 @@ class OnlineJoint:
     def _gate_var(self) -> FloatArray | None:
         """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
 
-        None while the gate is off or there is no noise estimate yet (before the first estimate).
-        Cached: it changes only with an estimate (per-frame cost).
+        From the latest estimate's noise, or before the first one from the noise seen while
+        building the templates; None while the gate is off or neither exists (fixed templates
+        before an estimate). Cached: it changes only with an estimate (per-frame cost).
         """
-        key = (self.gate, self._solution is None, self._sigma)
+        sigma = self._sigma
+        if self._solution is None and self.templates_ready:
+            # before the first estimate: the noise seen while building the templates
+            assert self._parent is not None and self._child is not None
+            sigma = (self._parent.template_sigma, self._child.template_sigma)
+        key = (self.gate, self._solution is None, sigma)
         if key != self._gate_key:
             self._gate_key = key
-            if self.gate <= 0.0 or self._solution is None or min(self._sigma) <= 0.0:
+            if self.gate <= 0.0 or min(sigma) <= 0.0:
                 self._gate_cache = None
             else:
-                self._gate_cache = np.square(self.gate * np.asarray(self._sigma))
+                self._gate_cache = np.square(self.gate * np.asarray(sigma))
         return self._gate_cache
 
     def _gated(

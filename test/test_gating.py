@@ -142,3 +142,24 @@ def test_gate_is_saved_and_validated() -> None:
 
     with pytest.raises(InputError, match="gate"):
         OnlineJoint("ball", window=10, gate=-1.0)
+
+
+def test_swap_while_the_templates_are_built() -> None:
+    """A label swap in the first frames is left out of the template, and the gate works from the start."""
+    parent, child = _rig(11, 1200)
+    clean = OnlineJoint("ball", window=5000)
+    _stream(clean, parent, child)
+    ref = clean.estimate()
+    child[10:25, [0, 2]] = child[10:25, [2, 0]]  # 15 of the 50 template frames
+    parent[60:90, [1, 3]] = parent[60:90, [3, 1]]  # kept aside with the template frames, replayed after
+    est = OnlineJoint("ball", window=5000)
+    _stream(est, parent, child)
+    sol = est.estimate()
+    err = np.concatenate([sol.centre_parent - ref.centre_parent, sol.centre_child - ref.centre_child])
+    assert sol.identifiable and mahalanobis(err, sol.cov) < 3.0**2 * 6, err
+    assert est.dropped.get("parent_gated", 0) + est.dropped.get("parent_gated_markers", 0) >= 30
+    # The template is the clean cluster: its inter-marker distances are the true ones.
+    tc = est.templates[1]
+    assert tc is not None
+    true_d = np.linalg.norm(child[200, :, None] - child[200, None, :], axis=2)
+    assert np.abs(np.linalg.norm(tc[:, None] - tc[None, :], axis=2) - true_d).max() < 3.0
