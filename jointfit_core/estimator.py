@@ -52,6 +52,10 @@ FloatArray = NDArray[np.float64]
 #: median of the candidates by more than this many times the typical (median) largest deviation.
 TEMPLATE_DEV_FACTOR = 5.0
 
+#: Outlier gate: the noise sigma it assumes is at least this fraction of the templates' rms radius
+#: (noise-free or rounding-level data would otherwise fail it in every frame).
+GATE_SIGMA_FLOOR = 1e-6
+
 #: Outlier gate: the largest turn (deg) of a segment between the last frame in the statistics and a
 #: frame whose fit needed markers left out (a swap can leave a symmetric subset that fits turned over).
 GATE_MAX_TURN_DEG = 30.0
@@ -1240,7 +1244,9 @@ class OnlineJoint:
             if self.gate <= 0.0 or min(sigma) <= 0.0:
                 self._gate_cache = None
             else:
-                self._gate_cache = np.square(self.gate * np.asarray(sigma))
+                # noise-free data: sigmas of rounding would gate every frame
+                floor = GATE_SIGMA_FLOOR * self.length_scale
+                self._gate_cache = np.square(self.gate * np.maximum(np.asarray(sigma), floor))
         return self._gate_cache
 
     def _gated(
@@ -1292,13 +1298,18 @@ class OnlineJoint:
                 self.dropped[f"{seg.name}_gated_markers"] = self.dropped.get(f"{seg.name}_gated_markers", 0) + len(best[1])
         return out
 
-    def _add(self, missing: NDArray[np.bool_], stamp: float | None) -> JointOutput | None:
-        """Pose both segments from ``self._Y`` (filled, ``missing`` rows NaN) and update the statistics."""
+    def _add(
+        self, missing: NDArray[np.bool_], stamp: float | None, counted: tuple[bool, bool] = (False, False)
+    ) -> JointOutput | None:
+        """Pose both segments from ``self._Y`` (filled, ``missing`` rows NaN) and update the statistics.
+
+        ``counted``: segments already counted as not posed for this frame (a refit after the gate).
+        """
         assert self._parent is not None and self._child is not None
         ps = self._pair(missing)
-        if ps.parent is None:
+        if ps.parent is None and not counted[0]:
             self._drop("parent_not_posed")
-        if ps.child is None:
+        if ps.child is None and not counted[1]:
             self._drop("child_not_posed")
         if ps.parent is None and ps.child is None:
             self._prev_in = False
@@ -1313,7 +1324,8 @@ class OnlineJoint:
             # scalar tests: this runs every frame
             if (ss[0] > gate_var[0] * dof[0] and dof[0] > 0.0) or (ss[1] > gate_var[1] * dof[1] and dof[1] > 0.0):
                 fail = (ss > gate_var * dof) & (dof > 0.0)
-                return self._add(self._gated(missing, ps, R, d, fail), stamp)
+                gated = self._gated(missing, ps, R, d, fail)
+                return self._add(gated, stamp, (ps.parent is None, ps.child is None))
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view

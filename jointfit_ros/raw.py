@@ -43,7 +43,8 @@ from numpy.typing import ArrayLike, DTypeLike, NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
-from jointfit_core.errors import JointfitError
+from jointfit_core.checks import as_real_array
+from jointfit_core.errors import InputError, JointfitError
 
 __all__ = [
     "ConversionError",
@@ -837,20 +838,9 @@ def pose_from_pose_stamped(msg: Any) -> RawPose:
 def _real_array(value: ArrayLike, name: str, expected: str) -> FloatArray:
     """``value`` as float64; ConversionError if it is not real numbers (complex would lose its imaginary part)."""
     try:
-        arr = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise ConversionError(
-            f"{name}: expected a numeric array of {expected}, got {type(value).__name__}: {exc}"
-        ) from None
-    if arr.dtype.kind == "c":
-        raise ConversionError(f"{name}: expected real numbers ({expected}), got complex values ({arr.dtype})")
-    try:
-        with np.errstate(invalid="ignore"):  # a float32 signalling NaN becomes a (quiet) NaN: missing
-            return arr.astype(np.float64, copy=False)
-    except (TypeError, ValueError) as exc:
-        raise ConversionError(
-            f"{name}: expected a numeric array of {expected}, got {type(value).__name__}: {exc}"
-        ) from None
+        return as_real_array(value, name=name, expected=expected)
+    except InputError as exc:
+        raise ConversionError(str(exc)) from None
 
 
 def _check_points(points: ArrayLike, name: str = "points") -> FloatArray:
