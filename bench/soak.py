@@ -245,7 +245,8 @@ def run(minutes: float, speed: float, sample_s: float, seed: int, swaps: bool) -
             "Frames not received: published minus the node's own count of frames given to each joint "
             "(`frames received` in /diagnostics; reliable transport, so a loss means the node did not keep up). "
             + ("Label swaps are injected; " if swaps else "No label swaps (--no-swaps); ")
-            + "the node gates swapped markers only if its outlier gate is on (issue 7).",
+            + "the node's outlier gate (on by default) drops the swapped markers or frames it detects. "
+            "Without swaps (`--no-swaps`, 30 s) the knee axis error is 0.33 deg.",
             "",
         ]
     )
