@@ -868,13 +868,20 @@ def _model_error_inflation(
     used = prep.both
     Q, t = prep.Q[used], prep.t[used]
     h = c_p[None, :] - np.einsum("nij,j->ni", Q, c_c) - t
-    lam, V = np.linalg.eigh(_constraint_cov(Q, c_p, c_c, Wp6, Wc6))
-    lam_safe = np.maximum(lam, 1e-300)
-    # Symmetric W^(-1/2) h: independent of the eigenvectors' signs, which vary per frame.
-    z_used = np.einsum("nij,nj->ni", V, np.einsum("nji,nj->ni", V, h) / np.sqrt(lam_safe))
     z = np.full((len(used), 3), np.nan)
-    z[used] = z_used
+    z[used] = _whitened(h, _constraint_cov(Q, c_p, c_c, Wp6, Wc6))
     return residual_inflation(z, 6)
+
+
+def _whitened(r: FloatArray, W: FloatArray) -> FloatArray:
+    """Per frame ``W^(-1/2) r`` (``r`` (N, k), ``W`` (N, k, k)), with the symmetric square root.
+
+    Symmetric, so independent of the eigenvectors' signs, which vary per frame.
+    """
+    lam, V = np.linalg.eigh(W)
+    lam_safe = np.maximum(lam, 1e-300)
+    out: FloatArray = np.einsum("nij,nj->ni", V, np.einsum("nji,nj->ni", V, r) / np.sqrt(lam_safe))
+    return out
 
 
 def _hinge_model_error(
@@ -892,9 +899,7 @@ def _hinge_model_error(
     # The direction rows (unitless) and the position rows (lengths) are whitened each by their own
     # block, so that the result does not depend on the length unit.
     for rows in (slice(0, 2), slice(2, 5)):
-        lam, V = np.linalg.eigh(W[:, rows, rows])
-        lam_safe = np.maximum(lam, 1e-300)
-        z[used, rows] = np.einsum("nij,nj->ni", V, np.einsum("nji,nj->ni", V, res[:, rows]) / np.sqrt(lam_safe))
+        z[used, rows] = _whitened(res[:, rows], W[:, rows, rows])
     return max(residual_inflation(z[:, :2], 4), residual_inflation(z[:, 2:], 5), key=lambda inf: inf.factor)
 
 
