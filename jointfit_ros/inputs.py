@@ -34,7 +34,7 @@ from .raw import (
 )
 from .runner import JointRunner
 
-__all__ = ["MessageRouter", "Routed"]
+__all__ = ["MessageRouter", "Routed", "route_frame"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -51,6 +51,22 @@ class Routed:
     stamp_ns: int
     frame_id: str
     output: JointOutput
+
+
+def route_frame(runners: Sequence[JointRunner], stamp_ns: int, frame_id: str, frame: FloatArray) -> list[Routed]:
+    """Give one parsed marker frame (P, 3) to the joints in order; their outputs.
+
+    Each joint's output in this frame becomes a virtual marker of the later
+    joints that name it in ``parent_chain`` / ``child_chain``.
+    """
+    out = []
+    chain: dict[str, FloatArray] = {}
+    for runner in runners:
+        result = runner.markers_frame(stamp_ns, frame, chain)
+        if result is not None:
+            chain[runner.cfg.name] = result.position
+            out.append(Routed(runner, stamp_ns, frame_id, result))
+    return out
 
 
 class MessageRouter:
@@ -339,14 +355,7 @@ class MessageRouter:
         self.frame_id = frame_id
         if self.recorded is not None:
             self.recorded.append((stamp_ns, frame))
-        out = []
-        chain: dict[str, FloatArray] = {}  # this frame's outputs, virtual markers of later chain joints
-        for runner in self.marker_runners:
-            result = runner.markers_frame(stamp_ns, frame, chain)
-            if result is not None:
-                chain[runner.cfg.name] = result.position
-                out.append(Routed(runner, stamp_ns, frame_id, result))
-        return out
+        return route_frame(self.marker_runners, stamp_ns, frame_id, frame)
 
     def pose(self, topic: str, raw: bytes) -> list[Routed]:
         """A message of a pose topic: the outputs of the joints it produced one for."""

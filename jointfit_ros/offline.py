@@ -42,7 +42,7 @@ from jointfit_core.io import MarkerData, read_c3d, read_trc
 from jointfit_core.segments import PoseSumsCentre
 
 from .bag import iter_bag_messages, select_topics
-from .inputs import MessageRouter
+from .inputs import MessageRouter, route_frame
 from .params import ConfigError, NodeConfig
 from .runner import JointRunner
 
@@ -279,12 +279,9 @@ def _marker_events(run: FitRun, data: MarkerData, step: int) -> Iterator[int]:
         stop = min(frames.shape[0], (start // step + 1) * step, start + MAX_BLOCK)
         if any(t.runner.chained for t in run.traces):
             # Chain joints take this frame's outputs of the joints before them: one frame at a time.
+            runners = [t.runner for t in run.traces]
             for k in range(start, stop):
-                chain: dict[str, FloatArray] = {}
-                for t in run.traces:
-                    out = t.runner.markers_frame(int(stamps_ns[k]), frames[k], chain)
-                    if out is not None:
-                        chain[t.runner.cfg.name] = out.position
+                route_frame(runners, int(stamps_ns[k]), "", frames[k])
         else:
             for t in run.traces:
                 t.runner.markers_block(stamps_ns[start:stop], frames[start:stop])
