@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
-from _common import machine, markdown_table
+from _common import machine, markdown_table, save_results
 from numpy.typing import NDArray
 
 __all__ = ["markdown_table"]  # re-exported for the paper scripts
@@ -63,10 +63,7 @@ def fmt(value: float, digits: int = 3) -> str:
 
 def write_result(name: str, text: str) -> Path:
     """Write ``bench/results/<name>`` and return its path."""
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / name
-    path.write_text(text, encoding="utf-8")
-    return path
+    return save_results(RESULTS / name, text)
 
 
 def pyplot() -> Any:

@@ -40,6 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import save_results
 from numpy.typing import NDArray
 
 from jointfit_core import (
@@ -229,8 +230,7 @@ def main() -> None:
     ]
     text = "\n".join(lines) + "\n"
     sys.stdout.write(text)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text, encoding="utf-8")
+    save_results(RESULTS, text)
 
 
 if __name__ == "__main__":

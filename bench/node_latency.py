@@ -73,7 +73,7 @@ from typing import IO
 
 import numpy as np
 import yaml
-from _common import cpu_name, markdown_table
+from _common import cpu_name, markdown_table, save_results
 
 ROOT = Path(__file__).resolve().parent.parent
 HELPERS = Path(__file__).resolve().parent / "_latency_helpers.py"
@@ -627,8 +627,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parts.append(f"Total runtime {time.perf_counter() - t_start:.0f} s.")
     text = "\n".join(parts) + "\n"
     print(text, end="")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text, encoding="utf-8")
+    save_results(RESULTS, text)
     return 0
 
 

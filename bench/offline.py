@@ -35,7 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine, markdown_table
+from _common import machine, markdown_table, save_results
 from bagtools import write_marker_bag
 
 from jointfit_ros.bag import iter_bag_messages
@@ -152,8 +152,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
     )
     print(text)
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(text)
+    save_results(RESULTS, text)
     return 0
 
 

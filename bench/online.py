@@ -61,7 +61,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import machine, markdown_table
+from _common import machine, markdown_table, save_results
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
@@ -620,8 +620,7 @@ def main() -> int:
     parts.append(f"Total runtime {time.perf_counter() - t_start:.0f} s.")
     text = "\n".join(parts) + "\n"
     print(text, end="")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text, encoding="utf-8")
+    save_results(RESULTS, text)
     return 0
 
 

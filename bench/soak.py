@@ -35,7 +35,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine, markdown_table
+from _common import machine, markdown_table, save_results
 
 from jointfit_ros.fake_mocap import make_rigs, truth_at
 
@@ -262,8 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     opts = parser.parse_args(argv)
     text = run(opts.minutes, opts.speed, opts.sample_s, opts.seed, not opts.no_swaps)
     print(text)
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(text)
+    save_results(RESULTS, text)
     return 0
 
 
