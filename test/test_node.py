@@ -217,9 +217,16 @@ def test_node_end_to_end(client: _Client, tmp_path: Path) -> None:
     try:
         assert client.spin_until(lambda: client.pub.get_subscription_count() > 0, 30.0)
         _stream(client, rigs, rng, t0, int(RATE), 20.0)
-        # Outputs from the first frames on: no template phase, no estimate to wait for.
-        assert client.spin_until(lambda: len(client.hip) > 0.8 * RATE, 10.0), len(client.hip)
+        # Outputs from the first frames on: no template phase, no estimate to wait for.  The
+        # node's own counters say so (every frame it received with a posed pelvis gave an
+        # output); the count seen here may be lower, since best-effort frames sent while
+        # discovery completes are lost.
+        assert client.spin_until(lambda: len(client.hip) > 0.5 * RATE, 10.0), len(client.hip)
         assert client.spin_until(lambda: "calibration loaded from" in client.status("hip"), 5.0)
+        client.spin_until(lambda: False, 1.0)  # the stream has ended: let the last outputs and diagnostics in
+        hip = client.status("hip")
+        not_posed = int(hip.get("dropped: parent_not_posed", "0"))  # occluded pelvis: no centre to give
+        assert int(hip["outputs"]) == int(hip["frames received"]) - not_posed >= len(client.hip), hip
         assert client.status("hip")["frozen"] == "True"
         err, e3, _ = _hip_errors(client, rigs, t0, last=100)
         assert err < 10.0, err
