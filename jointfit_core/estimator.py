@@ -14,6 +14,7 @@ residual (:mod:`jointfit_core.serial`).
 
 from __future__ import annotations
 
+import collections
 import itertools
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -56,9 +57,20 @@ TEMPLATE_DEV_FACTOR = 5.0
 #: (noise-free or rounding-level data would otherwise fail it in every frame).
 GATE_SIGMA_FLOOR = 1e-6
 
-#: Outlier gate: the largest turn (deg) of a segment between the last frame in the statistics and a
-#: frame whose fit needed markers left out (a swap can leave a symmetric subset that fits turned over).
+#: Outlier gate: the largest turn (deg) of a segment between the last frame in the statistics and
+#: the current one. A label swap in a nearly symmetric cluster (two markers about equidistant from
+#: the others) fits within the noise turned over by ~180 deg; so does a symmetric subset left after
+#: a swap. 30 deg per frame is 3000 deg/s at 100 Hz: far beyond any limb.
 GATE_MAX_TURN_DEG = 30.0
+
+#: Outlier gate: the turn test applies while its reference is at most this many frames old (frames
+#: that arrived, including those dropped for their stamp): after a longer gap (occlusion) the
+#: segment may really have turned, and the test starts afresh.
+GATE_TURN_GAP_FRAMES = 10
+
+#: Outlier gate: after this many frames in a row held out by the turn test, the test starts afresh
+#: (the reference itself may be the wrong one). Swaps that last longer get into the statistics.
+GATE_RELOCK_FRAMES = 500
 
 CALIBRATION_FORMAT = "jointfit-calibration"
 CALIBRATION_VERSION = 1
@@ -137,6 +149,16 @@ def _kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
         Vt[2] = -Vt[2]
         R = Vt.T @ U.T
     return R, yb - R @ xb
+
+
+_COS_MAX_TURN = float(np.cos(np.deg2rad(GATE_MAX_TURN_DEG)))
+#: Batched turn tests flag a frame as a candidate this much above the threshold (rounding of einsum).
+_COS_MARGIN = 1e-9
+
+
+def _cos_turn(R: FloatArray, Q: FloatArray) -> FloatArray:
+    """Cosine of the angle between rotations ``R`` and ``Q`` (..., 3, 3): ``(tr(R Q^T) - 1) / 2``, shape (...)."""
+    return (np.einsum("...ij,...ij->...", R, Q) - 1.0) / 2.0
 
 
 def _horn_matrices() -> tuple[FloatArray, FloatArray]:
@@ -738,7 +760,7 @@ class OnlineJoint:
         self._parent: _Segment | None = None
         self._child: _Segment | None = None
         self._sums: SlidingSums | None = None
-        self._pending: list[tuple[FloatArray, FloatArray, float | None]] = []
+        self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
         self._solution: PoseSumsCentre | PoseSumsAxis | None = None
         self._sigma = (0.0, 0.0)
         self._dirty = False
@@ -758,8 +780,15 @@ class OnlineJoint:
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
         self._serial: SerialInflation | None = None
-        # Rotations of both segments in the last frame that entered the statistics (outlier gate).
+        # The outlier gate's turn test: the reference rotations of both segments (those of the
+        # last frame that entered the statistics, carried along through the frames held out
+        # since), the number of the frame that set them (frames are numbered as they arrive,
+        # see _arrive), the frames held out in a row and their turn from the reference.
         self._R_last: FloatArray | None = None
+        self._ref_frame = 0
+        self._held = 0
+        self._flip = np.zeros((2, 3, 3))
+        self._arrivals = 0
         self._gate_key: tuple[float, bool, tuple[float, float]] | None = None
         self._gate_cache: FloatArray | None = None
         self._pairs: dict[bytes, _PairSet] = {}
@@ -886,6 +915,7 @@ class OnlineJoint:
             return self._after_fill(stamp)
         yp = check_frame(parent, None if self.n_markers is None else self.n_markers[0], name="parent")
         yc = check_frame(child, None if self.n_markers is None else self.n_markers[1], name="child")
+        number = self._arrive()
         ok, st = self._accept_stamp(stamp)
         if not ok:
             return None
@@ -902,16 +932,16 @@ class OnlineJoint:
         if not self.templates_ready:
             self._parent.add_template_frame(yp)
             self._child.add_template_frame(yc)
-            self._pending.append((yp.copy(), yc.copy(), st))
+            self._pending.append((yp.copy(), yc.copy(), st, number))
             if len(self._pending) > 20 * self.template_frames:
                 self._pending.pop(0)
                 self._drop("before_templates")
             if self.templates_ready:
                 pending, self._pending = self._pending, []
-                for p_frame, c_frame, p_stamp in pending:
-                    self._add(self._fill(p_frame, c_frame), p_stamp)
+                for p_frame, c_frame, p_stamp, p_number in pending:
+                    self._add(self._fill(p_frame, c_frame), p_stamp, p_number)
             return None
-        return self._add(self._fill(yp, yc), st)
+        return self._add(self._fill(yp, yc), st, number)
 
     def update_many(self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None = None) -> None:
         """Add a block of frames: the state of :meth:`update` of each frame in turn, without the outputs.
@@ -1012,6 +1042,8 @@ class OnlineJoint:
     def _update_block(self, yp: FloatArray, yc: FloatArray, st: FloatArray | None) -> None:
         """:meth:`update_many` once the templates are fixed (checked frames)."""
         assert self._parent is not None and self._child is not None and self.n_markers is not None
+        numbers = self._arrivals + 1 + np.arange(yp.shape[0], dtype=np.int64)
+        self._arrivals += yp.shape[0]
         if st is not None:
             before = np.empty_like(st)
             before[0] = -np.inf if self._last_stamp is None else self._last_stamp
@@ -1021,7 +1053,7 @@ class OnlineJoint:
             n_late = int(st.size - np.count_nonzero(accepted))
             if n_late:
                 self.dropped["stamp_not_increasing"] = self.dropped.get("stamp_not_increasing", 0) + n_late
-                yp, yc, st = yp[accepted], yc[accepted], st[accepted]
+                yp, yc, st, numbers = yp[accepted], yc[accepted], st[accepted], numbers[accepted]
             if st.size:
                 self._last_stamp = float(st[-1])
         m = yp.shape[0]
@@ -1056,14 +1088,14 @@ class OnlineJoint:
         rows = np.flatnonzero(entered)
         gate_var = self._gate_var()
         if rows.size and gate_var is not None:
-            self._gated_block(Y, missing, sets, inverse, entered, st, gate_var)
+            self._gated_block(Y, missing, sets, inverse, entered, st, gate_var, numbers)
             return
         if rows.size:
             # a lag pair when the accepted frame before entered the statistics
             before_in = np.empty(m, dtype=bool)
             before_in[0] = self._prev_in
             before_in[1:] = entered[:-1]
-            self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows)
+            self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows, numbers)
         self._prev_in = bool(entered[-1])
 
     def _gated_block(
@@ -1075,16 +1107,25 @@ class OnlineJoint:
         entered: NDArray[np.bool_],
         st: FloatArray | None,
         gate_var: FloatArray,
+        numbers: NDArray[np.int64],
     ) -> None:
-        """:meth:`_update_block` with the outlier gate: runs of passing frames in bulk, failing frames one by one.
+        """:meth:`_update_block` with the outlier gate: runs of passing frames in bulk, the others one by one.
 
-        A frame fails when a segment's residual exceeds the gate; it goes
-        through :meth:`_add` (marker removal, refit), exactly as
-        :meth:`update` would take it, between the bulk pushes of the frames
-        before and after it.
+        Every frame that :meth:`update` might gate goes through :meth:`_add`
+        (marker removal, refit), exactly as :meth:`update` would take it,
+        between the bulk pushes of the frames before and after it. The
+        candidates are a superset of the frames the gate fails, which is
+        safe: a frame that passes enters the sums identically either way.
+
+        * Residual: the same comparison as :meth:`_add` on the same poses.
+        * Turn (:data:`GATE_MAX_TURN_DEG`): against the previous frame that
+          entered, assuming each entered whole (so none held out since);
+          with a small margin for the batched cosine's rounding. After a frame taken one by one that did
+          not enter whole (gated or dropped), the next one is taken one by
+          one as well, since its reference is not the one assumed here.
         """
         rows = np.flatnonzero(entered)
-        _, _, ss = _poses_many(
+        R, _, ss = _poses_many(
             Y[rows],
             np.stack([ps.xc_t for ps in sets])[inverse[rows]],
             np.stack([ps.wn for ps in sets])[inverse[rows]],
@@ -1093,10 +1134,26 @@ class OnlineJoint:
             np.stack([ps.xx for ps in sets])[inverse[rows]],
         )
         dof = np.stack([ps.dof for ps in sets])[inverse[rows]]
-        failing = rows[((ss > gate_var * dof) & (dof > 0.0)).any(axis=1)]
+        candidate = ((ss > gate_var * dof) & (dof > 0.0)).any(axis=1)
+        n_rows = rows.size
+        ref = np.empty_like(R)
+        ref[1:] = R[:-1]
+        gap = np.empty(n_rows, dtype=np.int64)
+        gap[1:] = np.diff(numbers[rows])
+        if self._R_last is not None and self._held < GATE_RELOCK_FRAMES:
+            ref[0] = self._R_last
+            gap[0] = int(numbers[rows[0]]) - self._ref_frame
+        else:
+            ref[0] = R[0]
+            gap[0] = GATE_TURN_GAP_FRAMES + 1
+        turned = (_cos_turn(R, ref) < _COS_MAX_TURN + _COS_MARGIN).any(axis=1)
+        candidate |= turned & (gap <= GATE_TURN_GAP_FRAMES)
+        queue = collections.deque(np.flatnonzero(candidate).tolist())
         m = Y.shape[0]
         start = 0
-        for f in [*failing.tolist(), m]:
+        while True:
+            i = queue.popleft() if queue else n_rows
+            f = int(rows[i]) if i < n_rows else m
             run = np.flatnonzero(entered[start:f]) + start
             if run.size:
                 before_in = np.empty(run.size, dtype=bool)
@@ -1104,12 +1161,16 @@ class OnlineJoint:
                 before_in[1:] = np.diff(run) == 1
                 if run[0] > start:
                     before_in[0] = bool(entered[run[0] - 1])
-                self._push_block(Y[run], sets, inverse[run], before_in, st, run)
+                self._push_block(Y[run], sets, inverse[run], before_in, st, run, numbers)
             if start < f:
                 self._prev_in = bool(entered[f - 1])
-            if f < m:
-                self._Y[...] = Y[f]
-                self._add(missing[f], None if st is None else float(st[f]))
+            if f == m:
+                break
+            self._Y[...] = Y[f]
+            self._add(missing[f], None if st is None else float(st[f]), int(numbers[f]))
+            whole = self._ref_frame == numbers[f] and self._held == 0 and self._R_last is not None and np.array_equal(self._R_last, R[i])
+            if not whole and i + 1 < n_rows and (not queue or queue[0] != i + 1):
+                queue.appendleft(i + 1)
             start = f + 1
 
     def _push_block(
@@ -1120,8 +1181,12 @@ class OnlineJoint:
         paired: NDArray[np.bool_],
         st: FloatArray | None,
         rows: NDArray[np.intp],
+        numbers: NDArray[np.int64],
     ) -> None:
-        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair set ``sets[which]``) and push them."""
+        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair set ``sets[which]``) and push them.
+
+        ``rows``: their indices in the block, whose frames have the numbers ``numbers`` (see :meth:`_arrive`).
+        """
         m = Y.shape[0]
         R, d, ss = _poses_many(
             Y,
@@ -1158,6 +1223,8 @@ class OnlineJoint:
         self._dirty = True
         self._z_prev[...] = z[-1]
         self._R_last = R[-1].copy()
+        self._ref_frame = int(numbers[rows[-1]])
+        self._held = 0
 
     def _fast_fill(self, parent: ArrayLike, child: ArrayLike) -> bool:
         """Copy a well-shaped frame straight into the pose buffer; False to take the checked path.
@@ -1182,6 +1249,11 @@ class OnlineJoint:
         self._missing = np.asarray(~finite.all(axis=2), dtype=bool)
         return True
 
+    def _arrive(self) -> int:
+        """Number a frame that arrived (well-formed, whatever its stamp): the turn test's clock."""
+        self._arrivals += 1
+        return self._arrivals
+
     def _accept_stamp(self, stamp: float | None) -> tuple[bool, float | None]:
         """Check a frame's stamp; (False, _) when it does not increase (dropped and counted)."""
         st = None if stamp is None else float(stamp)
@@ -1197,11 +1269,12 @@ class OnlineJoint:
         return True, st
 
     def _after_fill(self, stamp: float | None) -> JointOutput | None:
+        number = self._arrive()
         ok, st = self._accept_stamp(stamp)
         if not ok:
             return None
         self.n_frames_seen += 1
-        return self._add(self._missing, st)
+        return self._add(self._missing, st, number)
 
     def _fill(self, yp: FloatArray, yc: FloatArray) -> NDArray[np.bool_]:
         """Copy checked frames into the pose buffer; return the missing-marker mask (2, Pmax)."""
@@ -1249,26 +1322,64 @@ class OnlineJoint:
                 self._gate_cache = np.square(self.gate * np.maximum(np.asarray(sigma), floor))
         return self._gate_cache
 
+    def _turn_reference(self, frame_no: int) -> FloatArray | None:
+        """Rotations (2, 3, 3) the gate's turn test compares with, or None.
+
+        None: no frame in the statistics yet, a reference more than
+        :data:`GATE_TURN_GAP_FRAMES` frames old, or :data:`GATE_RELOCK_FRAMES` frames held
+        out by the turn test in a row.
+        """
+        if self._R_last is None or self._held >= GATE_RELOCK_FRAMES:
+            return None
+        if frame_no - self._ref_frame > GATE_TURN_GAP_FRAMES:
+            return None
+        return self._R_last
+
+    def _follow(self, R: FloatArray, ps: _PairSet, turned: tuple[bool, bool], frame_no: int) -> None:
+        """Carry the turn test's reference along through a frame held out for turning alone.
+
+        ``turned``: the segments that turned from the reference while their markers fit rigidly
+        (within the residual gate): a flip, such as a swap in a nearly symmetric cluster. The
+        first frame held out gives each its flip ``F = R_ref^T R`` (the cluster's symmetry);
+        each frame held out then moves the reference to ``R F^T``, where the segment would be
+        without the flip, so that the true orientation passes again when the swap ends, however
+        far the limb moved meanwhile. Frames held out while frozen, or with a segment not posed,
+        leave the reference as it is (it ages).
+        """
+        assert self._R_last is not None
+        if self._frozen or ps.parent is None or ps.child is None:
+            return
+        if self._held == 0:
+            self._flip[...] = np.eye(3)
+            for k in (0, 1):
+                if turned[k]:
+                    self._flip[k] = self._R_last[k].T @ R[k]
+        self._held += 1
+        self._R_last = R @ np.swapaxes(self._flip, 1, 2)
+        self._ref_frame = frame_no
+
     def _gated(
-        self, missing: NDArray[np.bool_], ps: _PairSet, R: FloatArray, d: FloatArray, fail: NDArray[np.bool_]
+        self, missing: NDArray[np.bool_], ps: _PairSet, fail: NDArray[np.bool_], ref: FloatArray | None
     ) -> NDArray[np.bool_]:
         """The missing-marker mask after the gate, for the segments whose fit failed it.
 
-        For a failing segment, the subsets without one (then two) of its
+        A segment fails when its residual exceeds the gate, or when it turned
+        by more than :data:`GATE_MAX_TURN_DEG` from ``ref`` (the last frame in
+        the statistics, when at most :data:`GATE_TURN_GAP_FRAMES` back). For
+        a failing segment, the subsets without one (then two) of its
         visible markers, keeping at least 3, are fitted; the best one (least
-        residual) that passes the gate AND turns the segment by at most
-        :data:`GATE_MAX_TURN_DEG` from the last frame in the statistics is
-        kept (its left-out markers counted as ``<segment>_gated_markers``). The
-        turn test catches a swap that leaves a symmetric subset (e.g. the
-        two swapped markers equidistant from a third: a 180 deg turn fits it
-        exactly). Without such a subset the segment loses all its markers
-        (not posed; counted as ``<segment>_gated``).
+        residual) that passes the gate AND the turn test is kept (its
+        left-out markers counted as ``<segment>_gated_markers``). The turn
+        test catches a swap in a nearly symmetric cluster, and one that
+        leaves a symmetric subset (e.g. the two swapped markers equidistant
+        from a third): a ~180 deg turn fits either within the noise. Without
+        such a subset the segment loses all its markers (not posed; counted
+        as ``<segment>_gated``).
         """
         assert self._parent is not None and self._child is not None
         gate_var = self._gate_var()
         assert gate_var is not None
         out = missing.copy()
-        cos_max = np.cos(np.deg2rad(GATE_MAX_TURN_DEG))
         for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
             if not fail[k] or vs is None or seg.template is None:
                 continue
@@ -1284,7 +1395,7 @@ class OnlineJoint:
                     ss = float(np.sum((x[keep] @ Rk.T + dk - y[keep]) ** 2))
                     if ss > gate_var[k] * (3 * keep.size - 6):
                         continue
-                    if self._R_last is not None and (np.trace(Rk @ self._R_last[k].T) - 1.0) / 2.0 < cos_max:
+                    if ref is not None and _cos_turn(Rk, ref[k]) < _COS_MAX_TURN:
                         continue
                     if best is None or ss < best[0]:
                         best = (ss, drop)
@@ -1299,11 +1410,17 @@ class OnlineJoint:
         return out
 
     def _add(
-        self, missing: NDArray[np.bool_], stamp: float | None, counted: tuple[bool, bool] = (False, False)
+        self,
+        missing: NDArray[np.bool_],
+        stamp: float | None,
+        frame_no: int,
+        counted: tuple[bool, bool] = (False, False),
     ) -> JointOutput | None:
         """Pose both segments from ``self._Y`` (filled, ``missing`` rows NaN) and update the statistics.
 
-        ``counted``: segments already counted as not posed for this frame (a refit after the gate).
+        ``frame_no``: the frame's number (1-based count of the frames seen, for the gate's turn
+        test). ``counted``: segments already counted as not posed for this frame (a refit after
+        the gate).
         """
         assert self._parent is not None and self._child is not None
         ps = self._pair(missing)
@@ -1322,10 +1439,22 @@ class OnlineJoint:
         if gate_var is not None:
             dof = ps.dof
             # scalar tests: this runs every frame
-            if (ss[0] > gate_var[0] * dof[0] and dof[0] > 0.0) or (ss[1] > gate_var[1] * dof[1] and dof[1] > 0.0):
-                fail = (ss > gate_var * dof) & (dof > 0.0)
-                gated = self._gated(missing, ps, R, d, fail)
-                return self._add(gated, stamp, (ps.parent is None, ps.child is None))
+            fail_p = bool(ss[0] > gate_var[0] * dof[0] and dof[0] > 0.0)
+            fail_c = bool(ss[1] > gate_var[1] * dof[1] and dof[1] > 0.0)
+            ref = self._turn_reference(frame_no)
+            turned = (False, False)
+            if ref is not None:
+                cos = _cos_turn(R, ref)
+                turned = (bool(cos[0] < _COS_MAX_TURN) and ps.parent is not None, bool(cos[1] < _COS_MAX_TURN))
+                turned = (turned[0], turned[1] and ps.child is not None)
+            if fail_p or fail_c or turned[0] or turned[1]:
+                gated = self._gated(missing, ps, np.array([fail_p or turned[0], fail_c or turned[1]]), ref)
+                out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None))
+                # held out although rigid: a flip (e.g. a swap in a symmetric cluster) to carry along
+                flips = (turned[0] and not fail_p, turned[1] and not fail_c)
+                if (flips[0] or flips[1]) and self._ref_frame != frame_no:
+                    self._follow(R, ps, flips, frame_no)
+                return out
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view
@@ -1352,6 +1481,8 @@ class OnlineJoint:
             self._z_prev[...] = z
             self._prev_in = True
             self._R_last = R.copy()
+            self._ref_frame = frame_no
+            self._held = 0
         else:
             self._prev_in = False
         if ps.parent is None or self._solution is None:
