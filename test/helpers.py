@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
@@ -28,3 +31,31 @@ def mc_band(values: list[float], low: float = 0.8, high: float = 1.25) -> None:
     """Assert the mean validation index squared lies in the calibration band."""
     mean = float(np.mean(values))
     assert low <= mean <= high, f"mean e/rank = {mean:.3f} outside [{low}, {high}] over {len(values)} trials"
+
+
+#: Block updates (OnlineJoint.update_many) pose frames with a vectorised eigen-solve, the node's
+#: per-frame path with LAPACK: rotations agree to ~1e-13, so sums agree to about this, relative
+#: to their largest entry.
+SUMS_RTOL = 1e-11
+
+
+def rel_diff(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
+    """Largest absolute difference over the largest absolute entry of ``b``."""
+    return float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300))
+
+
+def assert_same_estimate(a: dict[str, Any], b: dict[str, Any], rtol: float = 1e-9, where: str = "") -> None:
+    """Two saved estimates (``to_dict()["estimate"]``): numbers to ``rtol`` of each array's scale, the rest equal."""
+    assert a.keys() == b.keys(), where
+    for key, vb in b.items():
+        va = a[key]
+        if isinstance(vb, dict):
+            assert_same_estimate(va, vb, rtol, f"{where}{key}.")
+        elif isinstance(vb, list):
+            arr_a, arr_b = np.array(va, dtype=float), np.array(vb, dtype=float)
+            scale = float(np.max(np.abs(arr_b))) if arr_b.size else 0.0
+            np.testing.assert_allclose(arr_a, arr_b, rtol=rtol, atol=rtol * scale, err_msg=f"{where}{key}")
+        elif isinstance(vb, float):
+            assert va == pytest.approx(vb, rel=rtol, abs=1e-300), f"{where}{key}"
+        else:
+            assert va == vb, f"{where}{key}"
