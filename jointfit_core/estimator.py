@@ -158,8 +158,6 @@ _COS_MAX_TURN = float(np.cos(np.deg2rad(GATE_MAX_TURN_DEG)))
 _COS_MARGIN = 1e-9
 #: Batched residual tests flag a frame as a candidate this fraction below the gate (rounding).
 _SS_MARGIN = 1e-6
-#: Rotation entries of the batched and the per-frame poses of a frame agree to this (~1e-13 seen).
-_ROTATION_ATOL = 1e-10
 
 
 def _cos_turn(R: FloatArray, Q: FloatArray) -> FloatArray:
@@ -401,6 +399,8 @@ class _Segment:
         x = np.asarray(template, dtype=np.float64)
         self.template = x - x.mean(axis=0)
         self._cache = {}
+        gaps = np.linalg.norm(self.template[:, None] - self.template[None, :], axis=2)
+        self.min_spacing = float(np.min(gaps[np.triu_indices(len(x), 1)]))
         full = pose_covariance_local(self.template, 1.0)
         self._full_rot = float(np.linalg.eigvalsh(full[:3, :3])[-1])
 
@@ -787,14 +787,15 @@ class OnlineJoint:
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
         self._serial: SerialInflation | None = None
-        # The outlier gate's turn test: the reference rotations of both segments (those of the
-        # last frame that entered the statistics, carried along through the frames held out
-        # since), the number of the frame that set them (frames are numbered as they arrive,
-        # see _arrive), the frames held out in a row and their turn from the reference.
-        self._R_last: FloatArray | None = None
-        self._ref_frame = 0
-        self._held = 0
-        self._flip = np.zeros((2, 3, 3))
+        # The outlier gate's turn test, per segment: the reference rotation (the segment's
+        # last pose that passed the gate, carried along through the frames held out since),
+        # whether there is one, the number of the frame that set it (frames are numbered as
+        # they arrive, see _arrive), the frames held out in a row and their flip.
+        self._R_ref = np.zeros((2, 3, 3))
+        self._d_ref = np.zeros((2, 3))
+        self._ref_ok = [False, False]
+        self._ref_frame = [0, 0]
+        self._held = [0, 0]
         self._arrivals = 0
         self._gate_key: tuple[float, bool, tuple[float, float]] | None = None
         self._gate_cache: FloatArray | None = None
@@ -1091,20 +1092,20 @@ class OnlineJoint:
             bad = int(m - np.count_nonzero(ok))
             if bad:
                 self.dropped[reason] = self.dropped.get(reason, 0) + bad
+        gate_var = self._gate_var()
+        if gate_var is not None:
+            self._gated_block(Y, missing, sets, inverse, parent_ok, child_ok, st, gate_var, numbers)
+            return
         entered = parent_ok & child_ok
         if self._frozen:
             entered[:] = False
         rows = np.flatnonzero(entered)
-        gate_var = self._gate_var()
-        if rows.size and gate_var is not None:
-            self._gated_block(Y, missing, sets, inverse, entered, st, gate_var, numbers)
-            return
         if rows.size:
             # a lag pair when the accepted frame before entered the statistics
             before_in = np.empty(m, dtype=bool)
             before_in[0] = self._prev_in
             before_in[1:] = entered[:-1]
-            self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows, numbers)
+            self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows)
         self._prev_in = bool(entered[-1])
 
     def _gated_block(
@@ -1113,7 +1114,8 @@ class OnlineJoint:
         missing: NDArray[np.bool_],
         sets: list[_PairSet],
         inverse: NDArray[np.intp],
-        entered: NDArray[np.bool_],
+        parent_ok: NDArray[np.bool_],
+        child_ok: NDArray[np.bool_],
         st: FloatArray | None,
         gate_var: FloatArray,
         numbers: NDArray[np.int64],
@@ -1121,49 +1123,49 @@ class OnlineJoint:
         """:meth:`_update_block` with the outlier gate: runs of passing frames in bulk, the others one by one.
 
         Every frame that :meth:`update` might gate goes through :meth:`_add`
-        (marker removal, refit), exactly as :meth:`update` would take it,
-        between the bulk pushes of the frames before and after it. The
-        candidates are a superset of the frames the gate fails, which is
-        safe: a frame that passes enters the sums identically either way.
+        (marker removal, refit, turn-test references), exactly as
+        :meth:`update` would take it, between the bulk pushes of the frames
+        before and after it. The candidates are a superset of the frames the
+        gate fails, which is safe: a frame that passes enters the sums the
+        same way (to rounding) either way.
 
+        * Frames with one segment posed (and, while frozen, every frame with
+          a segment posed): one by one (they move that segment's reference).
         * Residual: the comparison of :meth:`_add`, with a small margin: the
           batched poses equal the per-frame ones to rounding only.
-        * Turn (:data:`GATE_MAX_TURN_DEG`): against the previous frame that
-          entered, assuming each entered whole (so none held out since);
-          with a small margin for the batched cosine's rounding. After a frame taken one by one that did
-          not enter whole (gated or dropped), the next one is taken one by
-          one as well, since its reference is not the one assumed here.
+        * Turn (:data:`GATE_MAX_TURN_DEG`): against the previous frame with
+          both segments posed, assuming it entered whole; with a small
+          margin. After each frame taken one by one, the next such frame is
+          tested again against the references as they then are.
         """
-        rows = np.flatnonzero(entered)
-        R, d, ss = _poses_many(
-            Y[rows],
-            np.stack([ps.xc_t for ps in sets])[inverse[rows]],
-            np.stack([ps.wn for ps in sets])[inverse[rows]],
-            np.stack([ps.n for ps in sets])[inverse[rows]],
-            np.stack([ps.xbar for ps in sets])[inverse[rows]],
-            np.stack([ps.xx for ps in sets])[inverse[rows]],
-        )
-        dof = np.stack([ps.dof for ps in sets])[inverse[rows]]
-        candidate = ((ss > (1.0 - _SS_MARGIN) * gate_var * dof) & (dof > 0.0)).any(axis=1)
-        n_rows = rows.size
-        ref = np.empty_like(R)
-        ref[1:] = R[:-1]
-        gap = np.empty(n_rows, dtype=np.int64)
-        gap[1:] = np.diff(numbers[rows])
-        if self._R_last is not None and self._held < GATE_RELOCK_FRAMES:
-            ref[0] = self._R_last
-            gap[0] = int(numbers[rows[0]]) - self._ref_frame
-        else:
-            ref[0] = R[0]
-            gap[0] = GATE_TURN_GAP_FRAMES + 1
-        turned = (_cos_turn(R, ref) < _COS_MAX_TURN + _COS_MARGIN).any(axis=1)
-        candidate |= turned & (gap <= GATE_TURN_GAP_FRAMES)
-        queue = collections.deque(np.flatnonzero(candidate).tolist())
         m = Y.shape[0]
+        entered = parent_ok & child_ok
+        single = parent_ok ^ child_ok
+        if self._frozen:
+            single = parent_ok | child_ok
+            entered = np.zeros(m, dtype=bool)
+        rows = np.flatnonzero(entered)
+        sequential = single.copy()
+        R = d = ss = np.zeros((0, 2))
+        if rows.size:
+            R, d, ss = _poses_many(
+                Y[rows],
+                np.stack([ps.xc_t for ps in sets])[inverse[rows]],
+                np.stack([ps.wn for ps in sets])[inverse[rows]],
+                np.stack([ps.n for ps in sets])[inverse[rows]],
+                np.stack([ps.xbar for ps in sets])[inverse[rows]],
+                np.stack([ps.xx for ps in sets])[inverse[rows]],
+            )
+            dof = np.stack([ps.dof for ps in sets])[inverse[rows]]
+            candidate = np.any((ss > (1.0 - _SS_MARGIN) * gate_var * dof) & (dof > 0.0), axis=1)
+            close = np.diff(numbers[rows]) <= GATE_TURN_GAP_FRAMES
+            candidate[1:] |= close & (_cos_turn(R[1:], R[:-1]) < _COS_MAX_TURN + _COS_MARGIN).any(axis=1)
+            candidate[0] |= self._turns(R[0], int(numbers[rows[0]]))
+            sequential[rows[candidate]] = True
+        queue = collections.deque(np.flatnonzero(sequential).tolist())
         start = 0
         while True:
-            i = queue.popleft() if queue else n_rows
-            f = int(rows[i]) if i < n_rows else m
+            f = queue.popleft() if queue else m
             run = np.flatnonzero(entered[start:f]) + start
             if run.size:
                 before_in = np.empty(run.size, dtype=bool)
@@ -1172,21 +1174,18 @@ class OnlineJoint:
                 if run[0] > start:
                     before_in[0] = bool(entered[run[0] - 1])
                 pos = np.searchsorted(rows, run)  # the run's rows among the posed ones
-                self._push_block(Y[run], sets, inverse[run], before_in, st, run, numbers, (R[pos], d[pos], ss[pos]))
+                self._push_block(Y[run], sets, inverse[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
+                self._set_references(R[pos[-1]], d[pos[-1]], int(numbers[run[-1]]))
             if start < f:
                 self._prev_in = bool(entered[f - 1])
             if f == m:
                 break
             self._Y[...] = Y[f]
-            self._add(missing[f], None if st is None else float(st[f]), int(numbers[f]))
-            whole = (
-                self._ref_frame == numbers[f]
-                and self._held == 0
-                and self._R_last is not None
-                and bool(np.all(np.abs(self._R_last - R[i]) <= _ROTATION_ATOL))
-            )
-            if not whole and i + 1 < n_rows and (not queue or queue[0] != i + 1):
-                queue.appendleft(i + 1)
+            counted = (not bool(parent_ok[f]), not bool(child_ok[f]))
+            self._add(missing[f], None if st is None else float(st[f]), int(numbers[f]), counted)
+            i = int(np.searchsorted(rows, f, side="right"))  # the next frame with both segments posed
+            if i < rows.size and (not queue or queue[0] > rows[i]) and self._turns(R[i], int(numbers[rows[i]])):
+                queue.appendleft(int(rows[i]))
             start = f + 1
 
     def _push_block(
@@ -1197,13 +1196,11 @@ class OnlineJoint:
         paired: NDArray[np.bool_],
         st: FloatArray | None,
         rows: NDArray[np.intp],
-        numbers: NDArray[np.int64],
         poses: tuple[FloatArray, FloatArray, FloatArray] | None = None,
     ) -> None:
         """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair set ``sets[which]``) and push them.
 
-        ``rows``: their indices in the block, whose frames have the numbers ``numbers`` (see :meth:`_arrive`).
-        ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
+        ``rows``: their indices in the block. ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
         """
         m = Y.shape[0]
         if poses is None:
@@ -1242,9 +1239,6 @@ class OnlineJoint:
         self._sums.push_many(c, None if st is None else st[rows])
         self._dirty = True
         self._z_prev[...] = z[-1]
-        self._R_last = R[-1].copy()
-        self._ref_frame = int(numbers[rows[-1]])
-        self._held = 0
 
     def _fast_fill(self, parent: ArrayLike, child: ArrayLike) -> bool:
         """Copy a well-shaped frame straight into the pose buffer; False to take the checked path.
@@ -1342,50 +1336,76 @@ class OnlineJoint:
                 self._gate_cache = np.square(self.gate * np.maximum(np.asarray(sigma), floor))
         return self._gate_cache
 
-    def _turn_reference(self, frame_no: int) -> FloatArray | None:
-        """Rotations (2, 3, 3) the gate's turn test compares with, or None.
+    def _turn_active(self, frame_no: int) -> tuple[bool, bool]:
+        """Per segment, whether the gate's turn test applies in frame ``frame_no``.
 
-        None: no frame in the statistics yet, a reference more than
-        :data:`GATE_TURN_GAP_FRAMES` frames old, or :data:`GATE_RELOCK_FRAMES` frames held
-        out by the turn test in a row.
+        Not when the segment has no reference yet, when its reference is more than
+        :data:`GATE_TURN_GAP_FRAMES` frames old, or after :data:`GATE_RELOCK_FRAMES` frames
+        held out by the turn test in a row.
         """
-        if self._R_last is None or self._held >= GATE_RELOCK_FRAMES:
-            return None
-        if frame_no - self._ref_frame > GATE_TURN_GAP_FRAMES:
-            return None
-        return self._R_last
+        ok, held, at = self._ref_ok, self._held, self._ref_frame
+        return (
+            ok[0] and held[0] < GATE_RELOCK_FRAMES and frame_no - at[0] <= GATE_TURN_GAP_FRAMES,
+            ok[1] and held[1] < GATE_RELOCK_FRAMES and frame_no - at[1] <= GATE_TURN_GAP_FRAMES,
+        )
 
-    def _follow(self, R: FloatArray, ps: _PairSet, turned: tuple[bool, bool], frame_no: int) -> None:
-        """Carry the turn test's reference along through a frame held out for turning alone.
+    def _turns(self, R: FloatArray, frame_no: int) -> bool:
+        """Whether a segment of poses ``R`` (2, 3, 3) may fail the turn test now (with the batch margin)."""
+        active = self._turn_active(frame_no)
+        if not (active[0] or active[1]):
+            return False
+        cos = _cos_turn(R, self._R_ref)
+        margin = _COS_MAX_TURN + _COS_MARGIN
+        return (active[0] and bool(cos[0] < margin)) or (active[1] and bool(cos[1] < margin))
 
-        ``turned``: the segments that turned from the reference while their markers fit rigidly
-        (within the residual gate): a flip, such as a swap in a nearly symmetric cluster. The
-        first frame held out gives each its flip ``F = R_ref^T R`` (the cluster's symmetry);
-        each frame held out then moves the reference to ``R F^T``, where the segment would be
-        without the flip, so that the true orientation passes again when the swap ends, however
-        far the limb moved meanwhile. Frames held out while frozen, or with a segment not posed,
-        leave the reference as it is (it ages).
+    def _set_references(self, R: FloatArray, d: FloatArray, frame_no: int) -> None:
+        """Both segments passed the gate in frame ``frame_no`` with poses ``R`` (2, 3, 3), ``d`` (2, 3)."""
+        self._R_ref[...] = R
+        self._d_ref[...] = d
+        self._ref_ok = [True, True]
+        self._ref_frame = [frame_no, frame_no]
+        self._held = [0, 0]
+
+    def _relabelling(self, k: int, vs: _VisibleSet) -> NDArray[np.intp] | None:
+        """Segment ``k``'s visible markers in ``self._Y`` as its reference's markers relabelled, or None.
+
+        Returns the template index of each visible marker when each lies within half the
+        template's smallest marker spacing of a different marker predicted by the reference
+        pose: the same points under other labels (a swap). None when they are not: a segment
+        that jumped (a recording that restarts, another subject), or ghosts.
         """
-        assert self._R_last is not None
-        if self._frozen or ps.parent is None or ps.child is None:
-            return
-        if self._held == 0:
-            self._flip[...] = np.eye(3)
-            for k in (0, 1):
-                if turned[k]:
-                    self._flip[k] = self._R_last[k].T @ R[k]
-        self._held += 1
-        self._R_last = R @ np.swapaxes(self._flip, 1, 2)
-        self._ref_frame = frame_no
+        seg = self._parent if k == 0 else self._child
+        assert seg is not None and seg.template is not None
+        y = self._Y[k, vs.index]
+        predicted = seg.template @ self._R_ref[k].T + self._d_ref[k]
+        d2 = np.sum((y[:, None, :] - predicted[None, :, :]) ** 2, axis=2)
+        nearest = np.argmin(d2, axis=1)
+        close = d2[np.arange(nearest.size), nearest] < (0.5 * seg.min_spacing) ** 2
+        if not close.all() or np.unique(nearest).size != nearest.size:
+            return None
+        return nearest
+
+    def _follow(self, k: int, y: FloatArray, vs: _VisibleSet, labels: NDArray[np.intp], frame_no: int) -> None:
+        """Carry segment ``k``'s turn reference along through a frame held out, its markers relabelled.
+
+        The reference becomes the pose of the frame's visible markers ``y`` (``vs``) under the
+        labels of :meth:`_relabelling` (where the segment is, whatever the swap), so that the true labels
+        pass the turn test again when the swap ends, however far the limb moved meanwhile.
+        """
+        seg = self._parent if k == 0 else self._child
+        assert seg is not None and seg.template is not None
+        self._R_ref[k], self._d_ref[k] = _kabsch(y, seg.template[labels])
+        self._held[k] += 1
+        self._ref_frame[k] = frame_no
 
     def _gated(
-        self, missing: NDArray[np.bool_], ps: _PairSet, fail: NDArray[np.bool_], ref: FloatArray | None
+        self, missing: NDArray[np.bool_], ps: _PairSet, fail: NDArray[np.bool_], active: tuple[bool, bool]
     ) -> NDArray[np.bool_]:
         """The missing-marker mask after the gate, for the segments whose fit failed it.
 
         A segment fails when its residual exceeds the gate, or when it turned
-        by more than :data:`GATE_MAX_TURN_DEG` from ``ref`` (the last frame in
-        the statistics, when at most :data:`GATE_TURN_GAP_FRAMES` back). For
+        by more than :data:`GATE_MAX_TURN_DEG` from its reference (its last
+        pose that passed, when ``active``: see :meth:`_turn_active`). For
         a failing segment, the subsets without one (then two) of its
         visible markers, keeping at least 3, are fitted; the best one (least
         residual) that passes the gate AND the turn test is kept (its
@@ -1415,7 +1435,7 @@ class OnlineJoint:
                     ss = float(np.sum((x[keep] @ Rk.T + dk - y[keep]) ** 2))
                     if ss > gate_var[k] * (3 * keep.size - 6):
                         continue
-                    if ref is not None and _cos_turn(Rk, ref[k]) < _COS_MAX_TURN:
+                    if active[k] and _cos_turn(Rk, self._R_ref[k]) < _COS_MAX_TURN:
                         continue
                     if best is None or ss < best[0]:
                         best = (ss, drop)
@@ -1461,20 +1481,44 @@ class OnlineJoint:
             # scalar tests: this runs every frame
             fail_p = bool(ss[0] > gate_var[0] * dof[0] and dof[0] > 0.0)
             fail_c = bool(ss[1] > gate_var[1] * dof[1] and dof[1] > 0.0)
-            ref = self._turn_reference(frame_no)
-            turned = (False, False)
-            if ref is not None:
-                cos = _cos_turn(R, ref)
-                turned = (bool(cos[0] < _COS_MAX_TURN) and ps.parent is not None, bool(cos[1] < _COS_MAX_TURN))
-                turned = (turned[0], turned[1] and ps.child is not None)
+            active = self._turn_active(frame_no)
+            turned = [False, False]
+            if active[0] or active[1]:
+                cos = _cos_turn(R, self._R_ref)
+                turned = [active[0] and bool(cos[0] < _COS_MAX_TURN), active[1] and bool(cos[1] < _COS_MAX_TURN)]
+                turned = [turned[0] and ps.parent is not None, turned[1] and ps.child is not None]
+                # a rigid turn that is not a relabelling: the segment jumped (the recording
+                # restarts, another subject): no swap to hold out, the reference starts afresh
+                for k, (vs, fail) in enumerate(((ps.parent, fail_p), (ps.child, fail_c))):
+                    if turned[k] and not fail and vs is not None and self._relabelling(k, vs) is None:
+                        turned[k] = False
             if fail_p or fail_c or turned[0] or turned[1]:
-                gated = self._gated(missing, ps, np.array([fail_p or turned[0], fail_c or turned[1]]), ref)
+                failed = (fail_p or turned[0], fail_c or turned[1])
+                # (before the refit, which clears the markers it leaves out)
+                follow = [
+                    (k, vs, self._Y[k, vs.index].copy(), labels)
+                    for k, vs in enumerate((ps.parent, ps.child))
+                    if failed[k] and vs is not None and active[k]
+                    for labels in [self._relabelling(k, vs)]
+                    if labels is not None
+                ]
+                gated = self._gated(missing, ps, np.array(failed), active)
                 out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None))
-                # held out although rigid: a flip (e.g. a swap in a symmetric cluster) to carry along
-                flips = (turned[0] and not fail_p, turned[1] and not fail_c)
-                if (flips[0] or flips[1]) and self._ref_frame != frame_no:
-                    self._follow(R, ps, flips, frame_no)
+                # a segment held out whose markers are its reference's relabelled (a swap): the
+                # reference follows the limb through the swap
+                for k, vs, y, labels in follow:
+                    if self._ref_frame[k] != frame_no:
+                        self._follow(k, y, vs, labels, frame_no)
                 return out
+            if ps.parent is not None and ps.child is not None:
+                self._set_references(R, d, frame_no)
+            else:
+                k = 0 if ps.parent is not None else 1
+                self._R_ref[k] = R[k]
+                self._d_ref[k] = d[k]
+                self._ref_ok[k] = True
+                self._ref_frame[k] = frame_no
+                self._held[k] = 0
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view
@@ -1500,9 +1544,6 @@ class OnlineJoint:
             self._dirty = True
             self._z_prev[...] = z
             self._prev_in = True
-            self._R_last = R.copy()
-            self._ref_frame = frame_no
-            self._held = 0
         else:
             self._prev_in = False
         if ps.parent is None or self._solution is None:

@@ -269,3 +269,20 @@ def test_block_path_turn_test_exactly_as_the_frame_path() -> None:
             many.estimate()
     assert one.dropped == many.dropped and one.dropped.get("child_gated", 0) > 500
     assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
+
+
+def test_a_segment_that_jumps_is_not_held_out() -> None:
+    """A turn that is not a relabelling (the whole subject moved at once, a recording restarting): no swap.
+
+    From frame 700 both segments are turned by 90 deg about a vertical axis 1 m away (the joint
+    is unchanged): the turn test must not hold them out, and the reference starts afresh.
+    """
+    parent, child, _ = _symmetric_rig(12, 1200)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    pivot = np.array([1000.0, 0.0, 0.0])
+    for seg in (parent, child):
+        seg[700:] = (seg[700:] - pivot) @ R.T + pivot
+    est = OnlineJoint("hinge", window=5000)
+    _stream(est, parent, child)
+    assert not any("gated" in key for key in est.dropped), est.dropped
+    assert est.n_window == 1200
