@@ -1213,30 +1213,52 @@ class OnlineJoint:
                 np.stack([ps.xx for ps in sets])[which],
             )
         R, d, ss = poses
-        c = np.empty((m, _N_SUMS))
-        c[:, 0] = 1.0
+        if self._sums is None:
+            self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
+        stamps = None if st is None else st[rows]
         x = np.empty((m, 3, 4))
         x[:, :, :3] = R[:, 1]
         np.subtract(d[:, 1], d[:, 0], out=x[:, :, 3])
-        z = c[:, _Z].reshape(m, 3, 4)  # a view: written in place, as the per-frame path writes its buffer
-        np.matmul(np.swapaxes(R[:, 0], 1, 2), x, out=z)  # [Q | t] = R_p^T [R_c | d_c - d_p]
-        zf = c[:, _Z]
-        np.multiply(zf[:, :, None], zf[:, None, :], out=c[:, _ZZ].reshape(m, 12, 12))
-        c[:, _W] = np.stack([ps.W_flat for ps in sets])[which]
-        c[:, _SS : _SS + 4 : 2] = ss
-        c[:, _SS + 1 : _SS + 4 : 2] = np.stack([ps.dof for ps in sets])[which]
-        c[:, _LAG:] = 0.0
+        z = np.matmul(np.swapaxes(R[:, 0], 1, 2), x)  # [Q | t] = R_p^T [R_c | d_c - d_p]
+        zf = z.reshape(m, 12)
         # Lag pairs: the previous frame that entered is the previous row (the previous block's last for row 0).
         z_prev = np.empty_like(z)
         z_prev[0] = self._z_prev
         z_prev[1:] = z[:-1]
         pr = np.flatnonzero(paired)
-        c[pr, _LAG] = 1.0
-        c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
-        c[pr, _LAG + 13 :] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
-        if self._sums is None:
-            self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
-        self._sums.push_many(c, None if st is None else st[rows])
+        W_sets = np.stack([ps.W_flat for ps in sets])
+        dof_sets = np.stack([ps.dof for ps in sets])
+        if self._sums.spec.exponential:
+            # No window ring to keep records for: sum the block's weighted contributions with
+            # matrix products, never forming them one per frame.
+            w, w_old = self._sums.block_weights(m, stamps)
+            total = np.empty(_N_SUMS)
+            total[0] = w.sum()
+            total[_Z] = w @ zf
+            total[_ZZ] = ((zf * w[:, None]).T @ zf).ravel()
+            set_weight = np.bincount(which, weights=w, minlength=len(sets))
+            total[_W] = set_weight @ W_sets
+            total[_SS : _SS + 4 : 2] = w @ ss
+            total[_SS + 1 : _SS + 4 : 2] = set_weight @ dof_sets
+            wp = w[pr]
+            total[_LAG] = wp.sum()
+            total[_LAG + 1 : _LAG + 13] = wp @ (z[pr] + z_prev[pr]).reshape(pr.size, 12)
+            cross = (z[pr] * wp[:, None, None]).reshape(-1, 4).T @ z_prev[pr].reshape(-1, 4)
+            total[_LAG + 13 :] = cross.ravel()
+            self._sums.push_weighted_sum(total, w_old, m, stamps)
+        else:
+            c = np.empty((m, _N_SUMS))
+            c[:, 0] = 1.0
+            c[:, _Z] = zf
+            np.multiply(zf[:, :, None], zf[:, None, :], out=c[:, _ZZ].reshape(m, 12, 12))
+            c[:, _W] = W_sets[which]
+            c[:, _SS : _SS + 4 : 2] = ss
+            c[:, _SS + 1 : _SS + 4 : 2] = dof_sets[which]
+            c[:, _LAG:] = 0.0
+            c[pr, _LAG] = 1.0
+            c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
+            c[pr, _LAG + 13 :] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
+            self._sums.push_many(c, stamps)
         self._dirty = True
         self._z_prev[...] = z[-1]
 

@@ -37,6 +37,9 @@ __all__ = ["largest_eigenpair"]
 #: Newton stops for a row when a step changes the eigenvalue by less than this times the bound.
 NEWTON_RTOL = 1e-15
 NEWTON_MAX_STEPS = 60
+#: The eigenvector is taken again where its Rayleigh quotient moves the eigenvalue by more than this
+#: times the bound (a few ulp: the polynomial's root was ill-conditioned).
+REFINE_RTOL = 1e-14
 #: A row goes to ``eigh`` when the adjugate's largest diagonal entry is below this times bound^3.
 ADJUGATE_RTOL = 1e-10
 
@@ -123,10 +126,14 @@ def largest_eigenpair(N: FloatArray, S: FloatArray, bound: FloatArray) -> tuple[
     eigenvector from the adjugate. Agrees with ``numpy.linalg.eigh`` to a few
     ulp of ``bound`` in the eigenvalue (tested).
     """
-    c2 = -2.0 * np.einsum("...ij,...ij->...", S, S)
+    shape = N.shape[:-2]
+    N = N.reshape(-1, 4, 4)
+    S = S.reshape(-1, 3, 3)
+    bound = np.asarray(bound, dtype=np.float64).reshape(-1)
+    c2 = -2.0 * np.einsum("mij,mij->m", S, S)
     c1 = -8.0 * _det3(S)
     c0 = determinant(N)
-    lam = np.array(bound, dtype=np.float64, copy=True)
+    lam = bound.copy()
     active = lam > 0.0
     tol = NEWTON_RTOL * lam
     for _ in range(NEWTON_MAX_STEPS):
@@ -139,23 +146,38 @@ def largest_eigenpair(N: FloatArray, S: FloatArray, bound: FloatArray) -> tuple[
             step = np.where(active & (dp > 0.0), p / dp, 0.0)
         lam = np.where(active, lam - step, lam)
         active &= np.abs(step) > tol
-    bad = active.copy()
-    for refine in (False, True):
-        A = N - lam[..., None, None] * np.eye(4)
-        adj = adjugate(A)
-        diag = np.abs(np.diagonal(adj, axis1=-2, axis2=-1))
-        j = np.argmax(diag, axis=-1)
-        col = np.take_along_axis(adj, j[..., None, None], axis=-1)[..., 0]
-        norm = np.sqrt(np.einsum("...i,...i->...", col, col))
-        bad |= ~(np.take_along_axis(diag, j[..., None], axis=-1)[..., 0] > ADJUGATE_RTOL * bound**3)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = col / norm[..., None]
-        if not refine:
-            # The polynomial's root is only as good as its conditioning (close eigenvalues, e.g.
-            # three markers); the Rayleigh quotient of the first eigenvector is good to O(error^2).
-            lam = np.where(bad, lam, np.einsum("...i,...ij,...j->...", q, N, q))
+    q, bad = _eigenvector(N, lam, bound)
+    bad |= active
+    # The polynomial's root is only as good as its conditioning (close eigenvalues, e.g. three
+    # markers); the Rayleigh quotient of its eigenvector is good to O(error^2). Where it moves
+    # the eigenvalue by more than rounding, the eigenvector is taken again from it.
+    rayleigh = np.einsum("mi,mij,mj->m", q, N, q)
+    redo = np.flatnonzero(~bad & (np.abs(rayleigh - lam) > REFINE_RTOL * bound))
+    lam = np.where(bad, lam, rayleigh)
+    if redo.size:
+        q_redo, bad_redo = _eigenvector(N[redo], lam[redo], bound[redo])
+        q[redo] = q_redo
+        bad[redo] |= bad_redo
     if bad.any():
         w, v = np.linalg.eigh(N[bad])
-        lam[bad] = w[..., 3]
-        q[bad] = v[..., :, 3]
-    return lam, q
+        lam[bad] = w[:, 3]
+        q[bad] = v[:, :, 3]
+    return lam.reshape(shape), q.reshape(*shape, 4)
+
+
+def _eigenvector(N: FloatArray, lam: FloatArray, bound: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Unit eigenvectors (M, 4) of ``N`` (M, 4, 4) for eigenvalues ``lam`` (M,) from the adjugate of ``N - lam I``.
+
+    Also returns the rows where the adjugate vanishes (the eigenvalue is not simple to working
+    precision, or ``lam`` is not one): their vectors are meaningless.
+    """
+    adj = adjugate(N - lam[:, None, None] * np.eye(4))
+    diag = np.abs(np.diagonal(adj, axis1=1, axis2=2))
+    j = np.argmax(diag, axis=1)
+    rows = np.arange(j.size)
+    col = adj[rows, :, j]
+    norm = np.sqrt(np.einsum("mi,mi->m", col, col))
+    bad = ~(diag[rows, j] > ADJUGATE_RTOL * bound**3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = col / norm[:, None]
+    return q, bad

@@ -369,10 +369,41 @@ class SlidingSums:
         if st is not None:
             self.last_stamp = float(st[-1])
 
-    def _push_many_decay(self, c: FloatArray, st: FloatArray | None) -> None:
-        """Exponential forgetting of a block of contributions, in closed form (see :meth:`push_many`)."""
-        m = c.shape[0]
+    def push_weighted_sum(self, total: FloatArray, w_old: float, m: int, stamps: FloatArray | None) -> None:
+        """Exponential forgetting: add a block of ``m`` frames given as its weighted sum.
+
+        ``total`` (n_sums,) is ``sum_k w_k c_k`` with ``(w, w_old)`` from :meth:`block_weights`
+        for the same block; the sums become ``w_old * sums + total``, as :meth:`push_many` of
+        the contributions would make them, without forming the (m, n_sums) contributions (the
+        caller can sum its structured parts with matrix products). Only for stored
+        contributions without counts (``count_index``) under exponential forgetting.
+
+        Raises
+        ------
+        InputError
+            The sums are of another kind, or ``total`` has the wrong shape.
+        """
+        if not (self.spec.exponential and self._contrib is None and self._store_contrib and not self._count_index.size):
+            raise InputError("push_weighted_sum: only for exponential forgetting of stored contributions without counts")
+        tot = np.asarray(total, dtype=np.float64)
+        if tot.shape != (self.n_sums,):
+            raise InputError(f"total: expected shape ({self.n_sums},), got shape {tot.shape}")
+        if m <= 0:
+            return
+        self.sums = w_old * self.sums + tot
+        self.n_pushed += m
+        if stamps is not None:
+            self.last_stamp = float(stamps[-1])
+
+    def block_weights(self, m: int, stamps: FloatArray | None) -> tuple[FloatArray, float]:
+        """Exponential forgetting of a block of ``m`` frames: each frame's weight after the block, and the old sums'.
+
+        Returns ``(w, w_old)``, ``w`` shape (m,): the product of the decays applied after each
+        frame, and the decay of the sums before the block (see :meth:`push_many`). ``stamps``
+        (m,) are needed by time half-lives.
+        """
         if self.spec.half_life_s is not None:
+            st = stamps
             assert st is not None and (self.last_stamp is not None or self.n_pushed == 0)
             prev = np.empty(m)
             prev[0] = st[0] if self.n_pushed == 0 else self.last_stamp
@@ -386,8 +417,12 @@ class SlidingSums:
         # after[k]: exponent of the decays applied after frame k (frames k+1 .. m-1)
         after = np.zeros(m)
         after[:-1] = np.cumsum(expo[::-1])[::-1][1:]
-        w = np.exp(after)
-        w_old = float(np.exp(after[0] + expo[0]))
+        return np.exp(after), float(np.exp(after[0] + expo[0]))
+
+    def _push_many_decay(self, c: FloatArray, st: FloatArray | None) -> None:
+        """Exponential forgetting of a block of contributions, in closed form (see :meth:`push_many`)."""
+        m = c.shape[0]
+        w, w_old = self.block_weights(m, st)
         self.sums = w_old * self.sums + w @ c
         if self._count_index.size:
             self._counts_sq = w_old * w_old * self._counts_sq + (w * w) @ (c[:, self._count_index] ** 2)
