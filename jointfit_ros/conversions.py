@@ -9,6 +9,7 @@ covariance, visualisation markers, diagnostics and stamps.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -28,6 +29,7 @@ from .raw import (
     RawPose,
     _cdr_header,
     _unit,
+    _unit_quaternion,
     frame_from_points,
     label_points,
     label_problems,
@@ -89,6 +91,10 @@ FloatArray = NDArray[np.float64]
 #: yet keeps the 6x6 matrix invertible in double precision next to
 #: sub-millimetre position variances (1e-8 m^2), which 1e9 or more would not.
 UNKNOWN_ROTATION_VARIANCE = 1.0e6
+_UNKNOWN_ROTATION_COV = UNKNOWN_ROTATION_VARIANCE * np.eye(3)
+_IDENTITY_XYZW = np.array([0.0, 0.0, 0.0, 1.0])
+#: position (3), orientation (4), covariance (36): the float64s of a PoseWithCovariance, little-endian.
+_POSE_COV_LE = struct.Struct("<43d")
 
 
 def stamp_from_ns(ns: int) -> Time:
@@ -109,7 +115,7 @@ def stamp_from_ns(ns: int) -> Time:
 
 
 def _check_cov(cov: ArrayLike, name: str, n: int = 3) -> FloatArray:
-    arr = np.asarray(cov, dtype=np.float64)
+    arr = cov if isinstance(cov, np.ndarray) and cov.dtype == np.float64 else np.asarray(cov, dtype=np.float64)
     if arr.shape != (n, n):
         raise ConversionError(f"{name}: expected shape ({n}, {n}), got shape {arr.shape}")
     if not np.isfinite(arr).all():
@@ -118,7 +124,7 @@ def _check_cov(cov: ArrayLike, name: str, n: int = 3) -> FloatArray:
 
 
 def _vector3(v: ArrayLike, name: str) -> FloatArray:
-    arr = np.asarray(v, dtype=np.float64)
+    arr = v if isinstance(v, np.ndarray) and v.dtype == np.float64 else np.asarray(v, dtype=np.float64)
     if arr.shape != (3,):
         raise ConversionError(f"{name}: expected shape (3,), got shape {arr.shape}")
     return arr
@@ -132,13 +138,11 @@ def _pose_parts(
     c6 = np.zeros((6, 6))
     c6[:3, :3] = _check_cov(cov, "cov")
     if orientation_xyzw is None:
-        quat = np.array([0.0, 0.0, 0.0, 1.0])
+        quat = _IDENTITY_XYZW
     else:
-        rotation_matrix_from_quaternion(orientation_xyzw)  # validates
-        quat = np.asarray(orientation_xyzw, dtype=np.float64)
-        quat = quat / np.linalg.norm(quat)
+        quat = _unit_quaternion(orientation_xyzw)  # validates (as rotation_matrix_from_quaternion) and normalises
     if orientation_cov is None:
-        c6[3:, 3:] = UNKNOWN_ROTATION_VARIANCE * np.eye(3)
+        c6[3:, 3:] = _UNKNOWN_ROTATION_COV
     else:
         c6[3:, 3:] = _check_cov(orientation_cov, "orientation_cov")
     return pos, quat, c6
@@ -161,7 +165,7 @@ def pose_with_covariance_bytes(
     pos, quat, c6 = _pose_parts(position, cov, orientation_xyzw, orientation_cov)
     out = _cdr_header(stamp_ns, frame_id, "<")
     out += bytes((-(len(out) - 4)) % 8)  # float64s align to 8 after the encapsulation header
-    out += np.concatenate([pos, quat, c6.ravel()]).astype("<f8").tobytes()
+    out += _POSE_COV_LE.pack(*pos.tolist(), *quat.tolist(), *c6.ravel().tolist())
     return bytes(out)
 
 
@@ -291,7 +295,9 @@ def _axis_parts(direction: ArrayLike, cov_direction: ArrayLike, rotation_frame: 
     cd = _check_cov(cov_direction, "cov_direction")
     quat = quaternion_z_to_direction(direction)
     R = rotation_matrix_from_quaternion(quat)
-    J = np.stack([-R[:, 1], R[:, 0]], axis=1)
+    J = np.empty((3, 2))
+    J[:, 0] = -R[:, 1]
+    J[:, 1] = R[:, 0]
     rot = np.zeros((3, 3))
     rot[:2, :2] = J.T @ cd @ J
     rot[2, 2] = UNKNOWN_ROTATION_VARIANCE

@@ -138,11 +138,23 @@ class MessageRouter:
                 msg = parse_pose_array(raw)
             else:
                 msg = parse_pointcloud2(raw, label_field=cfg.label_field or None)
-            if np.isinf(msg.points).any():
+            finite = np.isfinite(msg.points)
+            all_finite = bool(finite.all())
+            if not all_finite and np.isinf(msg.points).any():
                 raise ConversionError(_INF_TEXT)
             if msg.labels is None and not cfg.unlabelled and msg.points.shape[0] != n:
                 raise ConversionError(_count_text(msg.points.shape[0], n))
-            if msg.labels is not None:
+            if msg.labels is None and not cfg.unlabelled and cfg.marker_type == "pose_array":
+                # Steady-state fast path: one point per marker, in order, in a new array of
+                # parse_pose_array's own: frame_from_points' result without its copy and checks.
+                frame = msg.points
+                bad = ~finite.all(axis=1) if not all_finite else None
+                if cfg.zero_is_missing:
+                    zero = (frame == 0.0).all(axis=1)
+                    bad = zero if bad is None else bad | zero
+                if bad is not None and bad.any():
+                    frame[bad] = np.nan
+            elif msg.labels is not None:
                 problems = label_problems(msg.labels, n)
                 if problems.out_of_range or problems.duplicated:
                     self.counters["label_problems"] += 1

@@ -1198,13 +1198,7 @@ def rotation_matrix_from_quaternion(xyzw: ArrayLike) -> FloatArray:
     ConversionError
         Wrong shape, non-finite values, or a (near) zero quaternion.
     """
-    q = _real_array(xyzw, "quaternion", "shape (4,)")
-    if q.shape != (4,):
-        raise ConversionError(f"quaternion: expected shape (4,) as (x, y, z, w), got shape {q.shape}")
-    norm = float(np.linalg.norm(q))
-    if not math.isfinite(norm) or norm < 1e-12:
-        raise ConversionError(f"quaternion: expected a finite non-zero quaternion, got {q.tolist()}")
-    x, y, z, w = q / norm
+    x, y, z, w = _unit_quaternion(xyzw).tolist()  # Python floats: the same IEEE operations, ~5x faster
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -1212,6 +1206,18 @@ def rotation_matrix_from_quaternion(xyzw: ArrayLike) -> FloatArray:
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ]
     )
+
+
+def _unit_quaternion(xyzw: ArrayLike) -> FloatArray:
+    """``xyzw`` (4,) divided by its norm; ConversionError for a wrong shape, non-finite or (near) zero one."""
+    q = xyzw if isinstance(xyzw, np.ndarray) and xyzw.dtype == np.float64 else _real_array(xyzw, "quaternion", "shape (4,)")
+    if q.shape != (4,):
+        raise ConversionError(f"quaternion: expected shape (4,) as (x, y, z, w), got shape {q.shape}")
+    norm = math.sqrt(q.dot(q))  # = np.linalg.norm(q), without its Python-level overhead
+    if not math.isfinite(norm) or norm < 1e-12:
+        raise ConversionError(f"quaternion: expected a finite non-zero quaternion, got {q.tolist()}")
+    out: FloatArray = q / norm
+    return out
 
 
 def quaternion_from_rotation_matrix(R: ArrayLike) -> FloatArray:
@@ -1224,13 +1230,14 @@ def quaternion_from_rotation_matrix(R: ArrayLike) -> FloatArray:
 
 
 def _unit(v: ArrayLike, name: str) -> FloatArray:
-    arr = _real_array(v, name, "shape (3,)")
+    arr = v if isinstance(v, np.ndarray) and v.dtype == np.float64 else _real_array(v, name, "shape (3,)")
     if arr.shape != (3,):
         raise ConversionError(f"{name}: expected shape (3,), got shape {arr.shape}")
-    norm = float(np.linalg.norm(arr))
+    norm = math.sqrt(arr.dot(arr))  # = np.linalg.norm(arr)
     if not math.isfinite(norm) or norm < 1e-12:
         raise ConversionError(f"{name}: expected a finite non-zero vector, got {arr.tolist()}")
-    return arr / norm
+    out: FloatArray = arr / norm
+    return out
 
 
 def quaternion_z_to_direction(direction: ArrayLike) -> FloatArray:
@@ -1253,11 +1260,10 @@ def quaternion_z_to_direction(direction: ArrayLike) -> FloatArray:
     ``q ∝ (z × d, 1 + z·d) = (-d_y, d_x, 0, 1 + d_z)``; near d = -z, ``1 + d_z``
     is computed as ``(d_x² + d_y²) / (1 - d_z)`` to avoid cancellation.
     """
-    d = _unit(direction, "direction")
-    dx, dy, dz = d
+    dx, dy, dz = _unit(direction, "direction").tolist()
     w = 1.0 + dz if dz >= 0.0 else (dx * dx + dy * dy) / (1.0 - dz)
     q = np.array([-dy, dx, 0.0, w])
-    norm = float(np.linalg.norm(q))
+    norm = math.sqrt(q.dot(q))
     if norm < 1e-150:
         return np.array([1.0, 0.0, 0.0, 0.0])
     return q / norm
