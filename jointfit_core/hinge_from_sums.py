@@ -73,12 +73,6 @@ def _kq(K: FloatArray, M: FloatArray) -> FloatArray:
     return out
 
 
-def _kqt(K: FloatArray, M: FloatArray) -> FloatArray:
-    """``sum_t Q_t^T M Q_t`` from ``K``."""
-    out: FloatArray = (K.T @ M.ravel()).reshape(3, 3)
-    return out
-
-
 def _direction_covariance(
     U: FloatArray, s: FloatArray, V: FloatArray, n: float, K: FloatArray, rot_p: FloatArray, rot_c: FloatArray
 ) -> FloatArray:
@@ -94,14 +88,16 @@ def _direction_covariance(
     """
     u = [U[:, k] for k in range(3)]
     v = [V[:, k] for k in range(3)]
-    # Entries of (a_1, a_2, b_1, b_2): parent part w_p . ([l]x Q r) and child part -(m^T Q [r]x w_c).
-    spec = [(u[1], v[0]), (u[2], v[0]), (u[0], v[1]), (u[0], v[2])]
-    C = np.empty((4, 4))
-    for i, (li, ri) in enumerate(spec):
-        for j, (lj, rj) in enumerate(spec):
-            parent = ri @ _kqt(K, skew(li).T @ rot_p @ skew(lj)) @ rj
-            child = li @ _kq(K, skew(ri) @ rot_c @ skew(rj).T) @ lj
-            C[i, j] = parent + child
+    # Entries of (a_1, a_2, b_1, b_2): parent part w_p . ([l]x Q r) and child part -(m^T Q [r]x w_c);
+    # all 16 pairs (i, j) at once: C_ij = r_i^T kqt([l_i]x^T rot_p [l_j]x) r_j + l_i^T kq([r_i]x rot_c [r_j]x^T) l_j.
+    left = np.stack([u[1], u[2], u[0], u[0]])
+    right = np.stack([v[0], v[0], v[1], v[2]])
+    sl, sr = skew(left), skew(right)
+    m_p = np.einsum("iba,bc,jcd->ijad", sl, rot_p, sl).reshape(16, 9)
+    m_c = np.einsum("iab,bc,jdc->ijad", sr, rot_c, sr).reshape(16, 9)
+    parent = np.einsum("ia,ijab,jb->ij", right, (m_p @ K).reshape(4, 4, 3, 3), right)  # kqt: K^T vec(M)
+    child = np.einsum("ia,ijab,jb->ij", left, (m_c @ K.T).reshape(4, 4, 3, 3), left)  # kq: K vec(M)
+    C = parent + child
     L = np.zeros((6, 4))
     for k in (1, 2):
         den = s[0] ** 2 - s[k] ** 2

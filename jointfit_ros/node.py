@@ -135,6 +135,7 @@ class JointfitNode(Node):
 
         # Timers and services.
         self._jf_timers: dict[str, Any] = {}
+        self._estimate_turn = -1  # the joint the estimate timer solved last
         self._make_timers()
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/freeze", self._on_freeze)
@@ -189,7 +190,11 @@ class JointfitNode(Node):
         for timer in self._jf_timers.values():
             self.destroy_timer(timer)
         self._jf_timers = {
-            "estimate": self.create_timer(self.cfg.estimate_period, self._on_estimate_timer),
+            # one joint per tick, in turn: each joint is re-solved every estimate_period, and no
+            # tick blocks the frame callbacks for more than one joint's solve
+            "estimate": self.create_timer(
+                self.cfg.estimate_period / max(1, len(self.runners)), self._on_estimate_timer
+            ),
             "diagnostics": self.create_timer(self.cfg.diagnostics_period, self._on_diagnostics_timer),
         }
         if self.cfg.local_rate > 0:
@@ -241,9 +246,11 @@ class JointfitNode(Node):
         return int(self.get_clock().now().nanoseconds)
 
     def _on_estimate_timer(self) -> None:
-        now = time.monotonic()
-        for runner in self.runners.values():
-            runner.estimate(now)
+        runners = list(self.runners.values())
+        if not runners:
+            return
+        self._estimate_turn = (self._estimate_turn + 1) % len(runners)
+        runners[self._estimate_turn].estimate(time.monotonic(), force=True)
 
     def _on_local_timer(self) -> None:
         stamp = self._now_ns()

@@ -156,7 +156,8 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "estimate_period",
         "double",
         0.1,
-        "Seconds between re-solving each joint's estimate from its window (the per-frame outputs use the latest).",
+        "Seconds between re-solving each joint's estimate from its window (the per-frame outputs use the latest); "
+        "the joints take turns within the period, so that one solve at a time delays the frames.",
         minimum=0.001,
         runtime=True,
     ),

@@ -119,19 +119,27 @@ def test_injected_outliers(kind: str) -> None:
 def test_block_path_gates_exactly_as_the_frame_path() -> None:
     parent, child = _rig(7, 1200)
     _corrupt("swap", parent, child, 7)
-    one = OnlineJoint("hinge", window=800)
-    many = OnlineJoint("hinge", window=800)
+    one, many = _frames_and_blocks(parent, child, 800, 150)
+    assert one.dropped == many.dropped and any("gated" in k for k in one.dropped)
+    assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
+
+
+def _frames_and_blocks(
+    parent: NDArray[np.float64], child: NDArray[np.float64], window: int, block: int
+) -> tuple[OnlineJoint, OnlineJoint]:
+    """Hinge estimators fed frame by frame (update) and in blocks (update_many), estimating after each block."""
+    one = OnlineJoint("hinge", window=window)
+    many = OnlineJoint("hinge", window=window)
     stamps = np.arange(parent.shape[0]) / 100.0
-    for start in range(0, parent.shape[0], 150):
-        stop = start + 150
+    for start in range(0, parent.shape[0], block):
+        stop = start + block
         for k in range(start, min(stop, parent.shape[0])):
             one.update(parent[k], child[k], stamps[k])
         many.update_many(parent[start:stop], child[start:stop], stamps[start:stop])
         if one.templates_ready:
             one.estimate()
             many.estimate()
-    assert one.dropped == many.dropped and any("gated" in k for k in one.dropped)
-    assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
+    return one, many
 
 
 def test_gate_is_saved_and_validated() -> None:
@@ -256,17 +264,7 @@ def test_block_path_turn_test_exactly_as_the_frame_path() -> None:
     child[rng.random(child.shape[:2]) < 0.02] = np.nan
     child[1200:1215] = np.nan
     child[1800:, [0, 2]] = child[1800:, [2, 0]]
-    one = OnlineJoint("hinge", window=900)
-    many = OnlineJoint("hinge", window=900)
-    stamps = np.arange(parent.shape[0]) / 100.0
-    for start in range(0, parent.shape[0], 170):
-        stop = start + 170
-        for k in range(start, min(stop, parent.shape[0])):
-            one.update(parent[k], child[k], stamps[k])
-        many.update_many(parent[start:stop], child[start:stop], stamps[start:stop])
-        if one.templates_ready:
-            one.estimate()
-            many.estimate()
+    one, many = _frames_and_blocks(parent, child, 900, 170)
     assert one.dropped == many.dropped and one.dropped.get("child_gated", 0) > 500
     assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
 
