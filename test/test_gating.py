@@ -284,3 +284,27 @@ def test_a_segment_that_jumps_is_not_held_out() -> None:
     _stream(est, parent, child)
     assert not any("gated" in key for key in est.dropped), est.dropped
     assert est.n_window == 1200
+
+
+def test_block_path_while_frozen_gates_as_the_frame_path() -> None:
+    """Frozen, nothing enters the sums, but the gate still follows both segments frame by frame."""
+    parent, child, _ = _symmetric_rig(13, 1500)
+    for k in range(700, 1400, 50):
+        child[k : k + 12, [0, 2]] = child[k : k + 12, [2, 0]]
+    parent[np.random.default_rng(14).random(parent.shape[:2]) < 0.03] = np.nan
+    one = OnlineJoint("hinge", window=5000)
+    many = OnlineJoint("hinge", window=5000)
+    stamps = np.arange(parent.shape[0]) / 100.0
+    for est in (one, many):
+        est.update_many(parent[:600], child[:600], stamps[:600])
+        est.estimate()
+        est.freeze()
+    before = one.n_window
+    for k in range(600, 1500):
+        one.update(parent[k], child[k], stamps[k])
+    for lo in range(600, 1500, 128):
+        many.update_many(parent[lo : lo + 128], child[lo : lo + 128], stamps[lo : lo + 128])
+    assert one.dropped == many.dropped and one.dropped.get("child_gated", 0) >= 12 * 14
+    assert one._ref_frame == many._ref_frame and one._held == many._held
+    np.testing.assert_allclose(many._R_ref, one._R_ref, rtol=0, atol=1e-9)
+    assert one.n_window == many.n_window == before

@@ -266,3 +266,26 @@ def test_update_many_checks_the_whole_block_first() -> None:
     fresh = OnlineJoint("ball", window=10)
     with pytest.raises(InputError, match="at least 3 markers"):
         fresh.update_many(np.zeros((5, 2, 3)), np.zeros((5, 4, 3)))
+
+
+def test_push_weighted_sum_equals_push_many() -> None:
+    """Exponential forgetting: a block given as its weighted sum ends where push_many of its rows does."""
+    rng = np.random.default_rng(21)
+    b, t0 = SlidingSums(WindowSpec(half_life=40.0), 5, 5, None), 0.0
+    for spec in (WindowSpec(half_life=40.0), WindowSpec(half_life_s=0.7)):
+        a = SlidingSums(spec, 5, 5, None)
+        b = SlidingSums(spec, 5, 5, None)
+        t0 = 0.0
+        for m in (1, 17, 60):
+            c = rng.normal(size=(m, 5))
+            st = t0 + np.cumsum(rng.uniform(0.005, 0.02, m))
+            t0 = float(st[-1])
+            a.push_many(c, st)
+            w, w_old = b.block_weights(m, st)
+            b.push_weighted_sum(w @ c, w_old, m, st)
+            assert rel_diff(b.sums, a.sums) < 1e-14 and b.n_pushed == a.n_pushed and b.last_stamp == a.last_stamp
+    ring = SlidingSums(WindowSpec(frames=10), 5, 5, None)
+    with pytest.raises(InputError, match="exponential"):
+        ring.push_weighted_sum(np.zeros(5), 1.0, 1, None)
+    with pytest.raises(InputError, match="shape"):
+        b.push_weighted_sum(np.zeros(4), 1.0, 1, np.array([t0 + 1.0]))
