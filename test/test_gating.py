@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -32,6 +33,18 @@ def _stream(est: OnlineJoint, parent: NDArray[np.float64], child: NDArray[np.flo
             est.estimate()
 
 
+def _with_and_without_gate(
+    kind: str, parent: NDArray[np.float64], child: NDArray[np.float64]
+) -> tuple[tuple[Any, dict[str, int]], tuple[Any, dict[str, int]]]:
+    """(estimate, dropped) over the whole stream with the default gate (5) and with none."""
+    results = []
+    for gate in (5.0, 0.0):
+        est = OnlineJoint(kind, window=5000, gate=gate)
+        _stream(est, parent, child)
+        results.append((est.estimate(), est.dropped))
+    return results[0], results[1]
+
+
 def test_real_label_swap_right_hip() -> None:
     pytest.importorskip("ezc3d")
     from jointfit_core.io import read_c3d
@@ -43,13 +56,7 @@ def test_real_label_swap_right_hip() -> None:
     clean = clean_est.estimate()
     # The thigh with the two epicondyle markers whose labels swap from about frame 700.
     thigh = data.select(["RTHI1", "RTHI2", "RTHI3", "RLFE", "RMFE"])
-    results = {}
-    for gate in (5.0, 0.0):
-        est = OnlineJoint("ball", window=5000, gate=gate)
-        _stream(est, pelvis, thigh)
-        results[gate] = (est.estimate(), est.dropped)
-    gated, dropped = results[5.0]
-    ungated, _ = results[0.0]
+    (gated, dropped), (ungated, _) = _with_and_without_gate("ball", pelvis, thigh)
     # Same parent markers, so the same parent frame: compare the centres there.
     assert mahalanobis(gated.centre_parent - clean.centre_parent, gated.cov_parent) < 3.0**2 * 3
     assert np.linalg.norm(gated.centre_parent - clean.centre_parent) < 5.0  # mm; sd is ~8-12 mm here
@@ -216,19 +223,13 @@ def test_swap_in_a_nearly_symmetric_cluster() -> None:
         child[k : k + length, [0, 2]] = child[k : k + length, [2, 0]]
         swapped_frames += max(0, min(length, parent.shape[0] - k))
         k += length
-    results = {}
-    for gate in (5.0, 0.0):
-        est = OnlineJoint("hinge", window=5000, gate=gate)
-        _stream(est, parent, child)
-        results[gate] = (est.estimate(), est.dropped)
-    sol, dropped = results[5.0]
+    (sol, dropped), (ungated, _) = _with_and_without_gate("hinge", parent, child)
     sd = np.degrees(np.sqrt(np.linalg.eigvalsh(sol.cov_direction_parent)[-1]))
     assert sol.identifiable
     assert _angle_deg(sol.direction_parent, ref.direction_parent) < 3.0 * sd, (sol.direction_parent, sd)
     # No 3-marker subset of the swapped cluster fits unturned: the whole child is left out, in
     # every swapped frame (swaps of up to 20 frames: the turn test keeps its reference).
     assert dropped.get("child_gated", 0) == swapped_frames, (dropped, swapped_frames)
-    ungated, _ = results[0.0]
     assert _angle_deg(ungated.direction_parent, ref.direction_parent) > 10.0 * sd
 
 
