@@ -1505,32 +1505,31 @@ class OnlineJoint:
             fail_c = bool(ss[1] > gate_var[1] * dof[1] and dof[1] > 0.0)
             active = self._turn_active(frame_no)
             turned = [False, False]
+            labels: list[NDArray[np.intp] | None] = [None, None]
             if active[0] or active[1]:
                 cos = _cos_turn(R, self._R_ref)
-                turned = [active[0] and bool(cos[0] < _COS_MAX_TURN), active[1] and bool(cos[1] < _COS_MAX_TURN)]
-                turned = [turned[0] and ps.parent is not None, turned[1] and ps.child is not None]
-                # a rigid turn that is not a relabelling: the segment jumped (the recording
-                # restarts, another subject): no swap to hold out, the reference starts afresh
                 for k, (vs, fail) in enumerate(((ps.parent, fail_p), (ps.child, fail_c))):
-                    if turned[k] and not fail and vs is not None and self._relabelling(k, vs) is None:
-                        turned[k] = False
+                    if not active[k] or vs is None or not (fail or cos[k] < _COS_MAX_TURN):
+                        continue
+                    # (here: a refit clears the markers it leaves out)
+                    labels[k] = self._relabelling(k, vs)
+                    # a rigid turn that is not a relabelling: the segment jumped (the recording
+                    # restarts, another subject): no swap to hold out, the reference starts afresh
+                    turned[k] = bool(cos[k] < _COS_MAX_TURN) and (fail or labels[k] is not None)
             if fail_p or fail_c or turned[0] or turned[1]:
                 failed = (fail_p or turned[0], fail_c or turned[1])
-                # (before the refit, which clears the markers it leaves out)
                 follow = [
-                    (k, vs, self._Y[k, vs.index].copy(), labels)
-                    for k, vs in enumerate((ps.parent, ps.child))
-                    if failed[k] and vs is not None and active[k]
-                    for labels in [self._relabelling(k, vs)]
-                    if labels is not None
+                    (k, vs, self._Y[k, vs.index].copy(), lab)
+                    for k, (vs, lab) in enumerate(((ps.parent, labels[0]), (ps.child, labels[1])))
+                    if failed[k] and vs is not None and lab is not None
                 ]
                 gated = self._gated(missing, ps, np.array(failed), active)
                 out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None))
                 # a segment held out whose markers are its reference's relabelled (a swap): the
                 # reference follows the limb through the swap
-                for k, vs, y, labels in follow:
+                for k, vs, y, lab in follow:
                     if self._ref_frame[k] != frame_no:
-                        self._follow(k, y, vs, labels, frame_no)
+                        self._follow(k, y, vs, lab, frame_no)
                 return out
             if ps.parent is not None and ps.child is not None:
                 self._set_references(R, d, frame_no)
@@ -1583,9 +1582,7 @@ class OnlineJoint:
         InputError
             No frame has entered the statistics yet.
         """
-        if self._sums is None or self._sums.sums[0] <= 0.0:
-            raise InputError(f"no frame has entered the statistics yet ({self.status() or 'no posed frame'})")
-        s = self._sums.sums
+        s = self._entered_sums()
         n = float(s[0])
         Z = s[_Z].reshape(3, 4)
         sums = PoseSums(n, Z[:, :3], Z[:, 3], s[_QT_IDX].sum(axis=0), float(s[_TT_IDX].sum()), s[_K_IDX])
@@ -1603,9 +1600,13 @@ class OnlineJoint:
         InputError
             No frame has entered the statistics yet.
         """
+        return LagSums.from_vector(self._entered_sums()[_LAG:])
+
+    def _entered_sums(self) -> FloatArray:
+        """The window's sums vector; InputError when no frame has entered the statistics yet."""
         if self._sums is None or self._sums.sums[0] <= 0.0:
             raise InputError(f"no frame has entered the statistics yet ({self.status() or 'no posed frame'})")
-        return LagSums.from_vector(self._sums.sums[_LAG:])
+        return self._sums.sums
 
     @property
     def serial_inflation(self) -> SerialInflation | None:
