@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import markdown_table, save_results
+from _paper_helpers import to_estimated_frame
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
@@ -302,16 +303,6 @@ def _stoddart_rig(rng: np.random.Generator, n_frames: int, rom: float, sigma: fl
     return _Rig(parent=parent, child=child, template_parent=tpl_p, centre_parent=centre_p)
 
 
-def _to_estimated_frame(template_true: FloatArray, template_est: FloatArray, point: FloatArray) -> FloatArray:
-    """Map a point of the true local frame into the estimated one (Procrustes of template onto template)."""
-    mu_t, mu_e = template_true.mean(axis=0), template_est.mean(axis=0)
-    u, _, vt = np.linalg.svd((template_true - mu_t).T @ (template_est - mu_e))
-    fix = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(vt.T @ u.T)))])
-    R = vt.T @ fix @ u.T
-    mapped: FloatArray = R @ (point - mu_t) + mu_e
-    return mapped
-
-
 def segments_table(rng: np.random.Generator, fit: Callable[..., SegmentsCentreFit]) -> tuple[str, str]:
     """Table 3 and its computed conclusion."""
     sigma = SEG_NOISE_TR_MM / np.sqrt(3.0)
@@ -330,7 +321,7 @@ def segments_table(rng: np.random.Generator, fit: Callable[..., SegmentsCentreFi
                         continue
                     finally:
                         stats[label].seconds += time.perf_counter() - t0
-                    c_true = _to_estimated_frame(rig.template_parent, res.template_parent, rig.centre_parent)
+                    c_true = to_estimated_frame(rig.template_parent, res.template_parent, rig.centre_parent)
                     delta = res.centre_parent - c_true
                     stats[label].add(
                         float(np.linalg.norm(delta)),

@@ -237,14 +237,7 @@ def real_hip() -> tuple[list[list[str]], list[str]]:
         ],
         ["hip", "joint residual rms (mm)", fmt(jf.rms), fmt(peer.residual_rms), "", ""],
         ["hip", "frames used", str(jf.n_frames), f"{peer.frames_kept} of {pelvis.shape[0]}", "", ""],
-        [
-            "hip",
-            "time per fit (ms)",
-            fmt(1e3 * t_j),
-            fmt(1e3 * t_p),
-            f"ratio {t_j / t_p:.2f}",
-            _speed_verdict(t_j, t_p),
-        ],
+        _time_row("hip", t_j, t_p),
     ]
     behind = []
     if box_distance(c_jf) > box_distance(c_peer) + 1.0:
@@ -325,14 +318,7 @@ def real_knee() -> tuple[list[list[str]], list[str]]:
             "",
         ],
         ["knee", "frames used", str(jf.n_frames), f"{peer.frames_kept} of {thigh.shape[0]}", "", ""],
-        [
-            "knee",
-            "time per fit (ms)",
-            fmt(1e3 * t_j),
-            fmt(1e3 * t_p),
-            f"ratio {t_j / t_p:.2f}",
-            _speed_verdict(t_j, t_p),
-        ],
+        _time_row("knee", t_j, t_p),
     ]
     behind = []
     if ang_j > ang_p + 1.0 or dist_j > dist_p + 1.0:
@@ -358,6 +344,11 @@ def _both_pass(ours: bool, theirs: bool) -> str:
     if theirs:
         return "**jointfit FAILS, peer passes**"
     return "both fail"
+
+
+def _time_row(joint: str, t_j: float, t_p: float) -> list[str]:
+    """The table row of the time per fit, jointfit's ``t_j`` against the peer's ``t_p`` (seconds)."""
+    return [joint, "time per fit (ms)", fmt(1e3 * t_j), fmt(1e3 * t_p), f"ratio {t_j / t_p:.2f}", _speed_verdict(t_j, t_p)]
 
 
 def _speed_verdict(ours: float, theirs: float) -> str:
