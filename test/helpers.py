@@ -59,3 +59,24 @@ def assert_same_estimate(a: dict[str, Any], b: dict[str, Any], rtol: float = 1e-
             assert va == pytest.approx(vb, rel=rtol, abs=1e-300), f"{where}{key}"
         else:
             assert va == vb, f"{where}{key}"
+
+
+def fake_rig_values(**extra: Any) -> dict[str, Any]:
+    """Node parameter values for the fake mocap's hip (ball) and knee (hinge), 20 template frames, plus ``extra``."""
+    from jointfit_ros.fake_mocap import marker_names  # (imports ROS messages: only for the tests that use it)
+
+    values: dict[str, Any] = {
+        "joints": ["hip", "knee"],
+        "marker_names": marker_names(0),
+        "input_frame_id": "world",
+        "hip.type": "ball",
+        "hip.parent_markers": ["PELV1", "PELV2", "PELV3", "PELV4"],
+        "hip.child_markers": ["THIGH1", "THIGH2", "THIGH3", "THIGH4"],
+        "hip.template_frames": 20,
+        "knee.type": "hinge",
+        "knee.parent_markers": ["FEMUR1", "FEMUR2", "FEMUR3", "FEMUR4"],
+        "knee.child_markers": ["SHANK1", "SHANK2", "SHANK3", "SHANK4"],
+        "knee.template_frames": 20,
+    }
+    values.update(extra)
+    return values

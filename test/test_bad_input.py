@@ -16,8 +16,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import fake_rig_values
 
-from jointfit_ros.fake_mocap import frame_at, make_rigs, marker_names
+from jointfit_ros.fake_mocap import frame_at, make_rigs
 from jointfit_ros.inputs import MessageRouter
 from jointfit_ros.params import node_config
 from jointfit_ros.raw import pointcloud2_bytes, pose_array_bytes
@@ -29,21 +30,7 @@ T0 = 1_000_000_000_000
 
 
 def _config(**extra: Any) -> Any:
-    values: dict[str, Any] = {
-        "joints": ["hip", "knee"],
-        "marker_names": marker_names(0),
-        "input_frame_id": "world",
-        "hip.type": "ball",
-        "hip.parent_markers": ["PELV1", "PELV2", "PELV3", "PELV4"],
-        "hip.child_markers": ["THIGH1", "THIGH2", "THIGH3", "THIGH4"],
-        "hip.template_frames": 20,
-        "knee.type": "hinge",
-        "knee.parent_markers": ["FEMUR1", "FEMUR2", "FEMUR3", "FEMUR4"],
-        "knee.child_markers": ["SHANK1", "SHANK2", "SHANK3", "SHANK4"],
-        "knee.template_frames": 20,
-    }
-    values.update(extra)
-    return node_config(values)
+    return node_config(fake_rig_values(**extra))
 
 
 def _frames(scale: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:

@@ -18,12 +18,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import SUMS_RTOL, assert_same_estimate, rel_diff
+from helpers import SUMS_RTOL, assert_same_estimate, fake_rig_values, rel_diff
 from numpy.typing import NDArray
 
 from jointfit_core.estimator import OnlineJoint
 from jointfit_ros.bag import iter_bag_messages
-from jointfit_ros.fake_mocap import frame_at, make_rigs, marker_names
+from jointfit_ros.fake_mocap import frame_at, make_rigs
 from jointfit_ros.inputs import MessageRouter
 from jointfit_ros.offline import run_fit
 from jointfit_ros.params import node_config
@@ -38,24 +38,9 @@ T0 = 1_700_000_000_000_000_000
 
 
 def _values(**extra: Any) -> dict[str, Any]:
-    values: dict[str, Any] = {
-        "joints": ["hip", "knee"],
-        "marker_names": marker_names(0),
-        "input_frame_id": "world",
-        "hip.type": "ball",
-        "hip.parent_markers": ["PELV1", "PELV2", "PELV3", "PELV4"],
-        "hip.child_markers": ["THIGH1", "THIGH2", "THIGH3", "THIGH4"],
-        "hip.template_frames": 20,
-        "hip.window": 400,
-        "knee.type": "hinge",
-        "knee.parent_markers": ["FEMUR1", "FEMUR2", "FEMUR3", "FEMUR4"],
-        "knee.child_markers": ["SHANK1", "SHANK2", "SHANK3", "SHANK4"],
-        "knee.template_frames": 20,
-        "knee.window_s": 3.0,
-        "knee.axis_toward_marker": "SHANK1",
-    }
-    values.update(extra)
-    return values
+    return fake_rig_values(
+        **{"hip.window": 400, "knee.window_s": 3.0, "knee.axis_toward_marker": "SHANK1", **extra}
+    )
 
 
 def _frames(seed: int = 4) -> tuple[FloatArray, NDArray[np.int64]]:

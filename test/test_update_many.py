@@ -37,10 +37,6 @@ WINDOWS: list[dict[str, Any]] = [
 ]
 
 
-def _rel(a: FloatArray, b: FloatArray) -> float:
-    return rel_diff(a, b)
-
-
 # --------------------------------------------------------------------------- SlidingSums.push_many
 
 
@@ -86,7 +82,7 @@ def test_push_many_equals_pushes(width: int) -> None:
             assert a.keys() == b.keys()
             for key in a:
                 if key == "sums" and spec.exponential:
-                    assert _rel(b[key], a[key]) < 1e-12
+                    assert rel_diff(b[key], a[key]) < 1e-12
                 elif isinstance(a[key], np.ndarray):
                     np.testing.assert_array_equal(b[key], a[key], err_msg=key)
                 else:
@@ -171,7 +167,7 @@ def _assert_same(many: OnlineJoint, one: OnlineJoint, exact: bool) -> None:
             for ta, tb in zip(a[key], b[key], strict=True):
                 np.testing.assert_array_equal(ta, tb)
         elif key in ("sums", "shadow"):
-            assert _rel(a[key], b[key]) < SUMS_RTOL, key
+            assert rel_diff(a[key], b[key]) < SUMS_RTOL, key
         elif isinstance(b[key], np.ndarray):
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
         else:
