@@ -45,7 +45,16 @@ from .serial import (
 )
 from .stats import SlidingSums, WindowSpec, window_spec
 
-__all__ = ["OnlineJoint", "JointOutput", "virtual_markers_template", "CALIBRATION_FORMAT", "CALIBRATION_VERSION"]
+__all__ = [
+    "OnlineJoint",
+    "JointOutput",
+    "SolveRequest",
+    "SolveResult",
+    "solve_window",
+    "virtual_markers_template",
+    "CALIBRATION_FORMAT",
+    "CALIBRATION_VERSION",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -352,6 +361,8 @@ class _Segment:
         self._seen = 0
         self._cache: dict[bytes, _VisibleSet | None] = {}
         self._full_rot = 0.0
+        self.rms_radius = 0.0  # of the template (input units; 0 until it exists)
+        self.min_spacing = 0.0  # least distance between two template points (input units)
 
     @property
     def template_progress(self) -> int:
@@ -401,6 +412,7 @@ class _Segment:
         self._cache = {}
         gaps = np.linalg.norm(self.template[:, None] - self.template[None, :], axis=2)
         self.min_spacing = float(np.min(gaps[np.triu_indices(len(x), 1)]))
+        self.rms_radius = float(np.sqrt(np.mean(np.sum(self.template**2, axis=1))))
         full = pose_covariance_local(self.template, 1.0)
         self._full_rot = float(np.linalg.eigvalsh(full[:3, :3])[-1])
 
@@ -431,11 +443,6 @@ class _Segment:
                 )
         self._cache[key] = out
         return out
-
-    @property
-    def rms_radius(self) -> float:
-        assert self.template is not None
-        return float(np.sqrt(np.mean(np.sum(self.template**2, axis=1))))
 
 
 def _shape_ok(points: FloatArray) -> bool:
@@ -557,6 +564,131 @@ def _serial_from_dict(data: Any) -> SerialInflation:
         raise InputError(f"calibration: serial_inflation: expected a mapping, got {type(data).__name__}")
     vals = {k: float("nan") if data.get(k) is None else float(data[k]) for k in ("rho", "rho_raw", "factor", "n_pairs")}
     return SerialInflation(**vals)
+
+
+# --------------------------------------------------------------------------- solving a window
+
+
+def _unpack_pose_sums(s: FloatArray) -> tuple[PoseSums, FloatArray, FloatArray, float, float]:
+    """:meth:`OnlineJoint.pose_sums` of a sums vector (the estimator's layout, at least one frame)."""
+    n = float(s[0])
+    Z = s[_Z].reshape(3, 4)
+    sums = PoseSums(n, Z[:, :3], Z[:, 3], s[_QT_IDX].sum(axis=0), float(s[_TT_IDX].sum()), s[_K_IDX])
+    ssp, dofp, ssc, dofc = s[_SS : _SS + 4]
+    sigma_p = float(np.sqrt(max(ssp, 0.0) / dofp)) if dofp > 0 else 0.0
+    sigma_c = float(np.sqrt(max(ssc, 0.0) / dofc)) if dofc > 0 else 0.0
+    W = s[_W]
+    return sums, W[:36].reshape(6, 6) / n, W[36:].reshape(6, 6) / n, sigma_p, sigma_c
+
+
+@dataclass(frozen=True, eq=False)
+class SolveRequest:
+    """One window's sums and settings, all :func:`solve_window` needs (made by :meth:`OnlineJoint.solve_request`).
+
+    Copies only, no reference to the estimator, and picklable: the node solves
+    in a separate process while the estimator takes further frames.
+
+    Attributes
+    ----------
+    kind : str
+        "ball" or "hinge".
+    sums : ndarray, shape (n_sums,)
+        A copy of the window's sums vector (the estimator's layout: relative
+        poses, their outer products, pose-noise weights, residual sums and
+        lag pairs; one array, so that sending it costs little).
+    noise_std : tuple of (float or None)
+        The fixed marker noise (parent, child), input units; None: estimated from the residual sums.
+    length_scale : float
+        The larger template rms radius, input units.
+    reference_direction : ndarray, shape (3,), or None
+        Hinge sign convention in the parent frame.
+    serial_correlation : bool
+        Whether the covariances take the serial-correlation factor.
+    generation, version : int
+        The estimator's state the request was made in (:meth:`OnlineJoint.install` drops stale results).
+    """
+
+    kind: str
+    sums: FloatArray
+    noise_std: tuple[float | None, float | None]
+    length_scale: float
+    reference_direction: FloatArray | None
+    serial_correlation: bool
+    generation: int
+    version: int
+
+
+@dataclass(frozen=True, eq=False)
+class SolveResult:
+    """:func:`solve_window`'s answer to a :class:`SolveRequest` (picklable).
+
+    Attributes
+    ----------
+    solution : PoseSumsCentre or PoseSumsAxis
+        The estimate, covariances with the serial-correlation factor.
+    serial : SerialInflation
+        The residual's lag-1 correlation and the factor applied.
+    noise_std : tuple of float
+        The marker noise (parent, child) used, input units.
+    generation, version : int
+        The request's.
+    """
+
+    solution: PoseSumsCentre | PoseSumsAxis
+    serial: SerialInflation
+    noise_std: tuple[float, float]
+    generation: int
+    version: int
+
+
+def solve_window(request: SolveRequest) -> SolveResult:
+    """Solve a window: the closed form on its sums, then the serial-correlation factor.
+
+    Parameters
+    ----------
+    request : SolveRequest
+
+    Returns
+    -------
+    SolveResult
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 frames in the sums.
+    NotIdentifiableError
+        The window's motion cannot determine the joint at all.
+
+    Notes
+    -----
+    Ball: :func:`~jointfit_core.segments.centre_from_pose_sums`; hinge:
+    :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` (Stoddart et al.,
+    eqs. 10-13 and 19, on running sums). The factor is
+    :func:`~jointfit_core.serial.serial_factor` of the joint residual's lag-1
+    autocorrelation (see :class:`OnlineJoint`'s Notes).
+    """
+    sums, Wp_unit, Wc_unit, sigma_p, sigma_c = _unpack_pose_sums(request.sums)
+    fixed_p, fixed_c = request.noise_std
+    sigma_p = sigma_p if fixed_p is None else fixed_p
+    sigma_c = sigma_c if fixed_c is None else fixed_c
+    Wp, Wc = sigma_p**2 * Wp_unit, sigma_c**2 * Wc_unit
+    scale = request.length_scale
+    sol: PoseSumsCentre | PoseSumsAxis
+    if request.kind == "ball":
+        sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale)
+        c_p, c_c = sol.centre_parent, sol.centre_child
+    else:
+        sol = axis_from_pose_sums(sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction)
+        c_p, c_c = hinge_residual_pair(sums, sol.direction_parent, sol.direction_child, sol.point_parent, sol.point_child)
+    lag = LagSums.from_vector(request.sums[_LAG:])
+    rho_raw = lag1_autocorrelation_from_sums(sums, lag, c_p, c_c)
+    rho, factor = serial_factor(rho_raw)
+    if not request.serial_correlation:
+        factor = 1.0
+    if factor != 1.0:
+        sol = _inflated(sol, factor, rho, scale)
+    serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs)
+    return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
 
 
 # --------------------------------------------------------------------------- the estimator
@@ -770,7 +902,12 @@ class OnlineJoint:
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
         self._solution: PoseSumsCentre | PoseSumsAxis | None = None
         self._sigma = (0.0, 0.0)
-        self._dirty = False
+        # Data changes since the start (frames entered; hinge sign convention) and the change the
+        # solution was solved at: the solution is stale while they differ. A reset (and a new sign
+        # convention) starts a new generation, whose solve results alone may be installed.
+        self._version = 0
+        self._solved_version = 0
+        self._generation = getattr(self, "_generation", 0) + 1
         self._frozen = False
         self._last_stamp: float | None = None
         self.dropped: dict[str, int] = {}
@@ -871,7 +1008,8 @@ class OnlineJoint:
     def set_reference_direction(self, direction: ArrayLike) -> None:
         """Set the hinge sign convention (a direction in the parent local frame); the next estimate follows it."""
         self.reference_direction = check_vector3(direction, name="reference_direction", unit=True)
-        self._dirty = True
+        self._version += 1
+        self._generation += 1  # a solve under way has the old convention
 
     def _make_segments(self, n_parent: int, n_child: int) -> None:
         self.n_markers = (n_parent, n_child)
@@ -1259,7 +1397,7 @@ class OnlineJoint:
             c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
             c[pr, _LAG + 13 :] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
             self._sums.push_many(c, stamps)
-        self._dirty = True
+        self._version += 1
         self._z_prev[...] = z[-1]
 
     def _fast_fill(self, parent: ArrayLike, child: ArrayLike) -> bool:
@@ -1562,7 +1700,7 @@ class OnlineJoint:
             if self._sums is None:
                 self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
             self._sums.push(c, stamp)
-            self._dirty = True
+            self._version += 1
             self._z_prev[...] = z
             self._prev_in = True
         else:
@@ -1582,15 +1720,7 @@ class OnlineJoint:
         InputError
             No frame has entered the statistics yet.
         """
-        s = self._entered_sums()
-        n = float(s[0])
-        Z = s[_Z].reshape(3, 4)
-        sums = PoseSums(n, Z[:, :3], Z[:, 3], s[_QT_IDX].sum(axis=0), float(s[_TT_IDX].sum()), s[_K_IDX])
-        ssp, dofp, ssc, dofc = s[_SS : _SS + 4]
-        sigma_p = float(np.sqrt(max(ssp, 0.0) / dofp)) if dofp > 0 else 0.0
-        sigma_c = float(np.sqrt(max(ssc, 0.0) / dofc)) if dofc > 0 else 0.0
-        W = s[_W]
-        return sums, W[:36].reshape(6, 6) / n, W[36:].reshape(6, 6) / n, sigma_p, sigma_c
+        return _unpack_pose_sums(self._entered_sums())
 
     def lag_sums(self) -> LagSums:
         """The window's lag-pair sums (:class:`~jointfit_core.serial.LagSums`; see the class Notes).
@@ -1633,40 +1763,63 @@ class OnlineJoint:
             Fewer than 3 frames in the statistics.
         NotIdentifiableError
             The window's motion cannot determine the joint at all.
+
+        Notes
+        -----
+        ``install(solve_window(solve_request()))``: the same steps as a solve in
+        another process (:meth:`solve_request`, :func:`solve_window`, :meth:`install`).
         """
-        if self._solution is not None and (self._frozen or not self._dirty):
-            return self._solution
-        sums, Wp_unit, Wc_unit, sigma_p, sigma_c = self.pose_sums()
-        sigma_p = sigma_p if self._noise_arg[0] is None else self._noise_arg[0]
-        sigma_c = sigma_c if self._noise_arg[1] is None else self._noise_arg[1]
-        assert self._parent is not None and self._child is not None
-        Wp = sigma_p**2 * Wp_unit
-        Wc = sigma_c**2 * Wc_unit
-        scale = self.length_scale
-        sol: PoseSumsCentre | PoseSumsAxis
-        if self.kind == "ball":
-            sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale)
-            c_p, c_c = sol.centre_parent, sol.centre_child
-        else:
-            sol = axis_from_pose_sums(
-                sums, Wp, Wc, length_scale=scale, reference_direction=self.reference_direction
-            )
-            c_p, c_c = hinge_residual_pair(
-                sums, sol.direction_parent, sol.direction_child, sol.point_parent, sol.point_child
-            )
-        lag = self.lag_sums()
-        rho_raw = lag1_autocorrelation_from_sums(sums, lag, c_p, c_c)
-        rho, factor = serial_factor(rho_raw)
-        if not self.serial_correlation:
-            factor = 1.0
-        self._serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs)
-        if factor != 1.0:
-            sol = _inflated(sol, factor, rho, scale)
-        self._solution = sol
-        self._sigma = (sigma_p, sigma_c)
+        request = self.solve_request()
+        if request is not None:
+            self._install(solve_window(request))
+        assert self._solution is not None
+        return self._solution
+
+    def solve_request(self) -> SolveRequest | None:
+        """A snapshot of the window for :func:`solve_window`; None when the estimate is current.
+
+        The estimate is current when frozen, or when no frame has entered the
+        statistics since it was solved. The request holds copies, so the
+        estimator takes further frames while it is solved elsewhere.
+
+        Raises
+        ------
+        InputError
+            No frame has entered the statistics yet.
+        """
+        if self._solution is not None and (self._frozen or self._version == self._solved_version):
+            return None
+        return SolveRequest(
+            kind=self.kind,
+            sums=self._entered_sums().copy(),
+            noise_std=self._noise_arg,
+            length_scale=self.length_scale,
+            reference_direction=self.reference_direction,
+            serial_correlation=self.serial_correlation,
+            generation=self._generation,
+            version=self._version,
+        )
+
+    def install(self, result: SolveResult) -> bool:
+        """Make a :func:`solve_window` result of an earlier :meth:`solve_request` the estimate.
+
+        Returns False (and changes nothing) when the result is stale: the
+        estimator was reset or frozen since the request, its hinge sign
+        convention changed, or the estimate is already as recent.
+        """
+        if result.generation != self._generation or self._frozen:
+            return False
+        if self._solution is not None and result.version <= self._solved_version:
+            return False
+        self._install(result)
+        return True
+
+    def _install(self, result: SolveResult) -> None:
+        self._solution = result.solution
+        self._sigma = result.noise_std
+        self._serial = result.serial
+        self._solved_version = result.version
         self._world_cache = {}
-        self._dirty = False
-        return sol
 
     def _world(
         self, Rp: FloatArray, dp: FloatArray, vp: _VisibleSet, child_pose: tuple[FloatArray, FloatArray] | None
