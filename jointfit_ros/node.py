@@ -38,11 +38,9 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 
 from .conversions import (
     axis_arrow_marker,
-    axis_pose,
     axis_pose_bytes,
     covariance_ellipsoid_marker,
     diagnostic_status,
-    pose_with_covariance,
     pose_with_covariance_bytes,
     stamp_from_ns,
 )
@@ -58,6 +56,7 @@ from .params import (
     node_config,
 )
 from .runner import OK, WARN, JointRunner
+from .solver_process import SolverProcess
 
 __all__ = ["JointfitNode", "main"]
 
@@ -134,6 +133,7 @@ class JointfitNode(Node):
             self.create_subscription(PoseStamped, topic, self._pose_callback(topic), qos, raw=True)
 
         # Timers and services.
+        self._solver = SolverProcess() if self.cfg.solver_process else None
         self._jf_timers: dict[str, Any] = {}
         self._estimate_turn = -1  # the joint the estimate timer solved last
         self._make_timers()
@@ -191,9 +191,11 @@ class JointfitNode(Node):
             self.destroy_timer(timer)
         self._jf_timers = {
             # one joint per tick, in turn: each joint is re-solved every estimate_period, and no
-            # tick blocks the frame callbacks for more than one joint's solve
+            # tick blocks the frame callbacks for more than one joint's solve; with the solver
+            # process, sending a window and installing an answer take a tick each
             "estimate": self.create_timer(
-                self.cfg.estimate_period / max(1, len(self.runners)), self._on_estimate_timer
+                self.cfg.estimate_period / max(1, len(self.runners)) / (1 if self._solver is None else 2),
+                self._on_estimate_timer,
             ),
             "diagnostics": self.create_timer(self.cfg.diagnostics_period, self._on_diagnostics_timer),
         }
@@ -249,8 +251,24 @@ class JointfitNode(Node):
         runners = list(self.runners.values())
         if not runners:
             return
+        solver = self._solver
+        if solver is not None:
+            answers = solver.collect()
+            for name, result in answers:
+                self.runners[name].install(result)
+            if not solver.alive:
+                self.get_logger().warning(f"{solver.problem}: solving on the executor thread from now on")
+                self._solver = solver = None  # (the ticks stay twice as frequent: each joint is solved more often)
+            elif answers or not solver.idle:
+                return  # this tick installed an answer (or the worker is still solving): send on the next
         self._estimate_turn = (self._estimate_turn + 1) % len(runners)
-        runners[self._estimate_turn].estimate(time.monotonic(), force=True)
+        runner = runners[self._estimate_turn]
+        if solver is None:
+            runner.estimate(time.monotonic(), force=True)
+        else:
+            request = runner.solve_request(time.monotonic(), force=True)
+            if request is not None:
+                solver.submit(runner.cfg.name, request)
 
     def _on_local_timer(self) -> None:
         stamp = self._now_ns()
@@ -259,13 +277,14 @@ class JointfitNode(Node):
             if sol is None:
                 continue
             frame = runner.cfg.local_frame_id
+            # CDR bytes, as the per-frame outputs: a message object costs ~0.1 ms more, on the frames' thread
             if isinstance(sol, PoseSumsAxis):
-                msg = axis_pose(
+                raw = axis_pose_bytes(
                     stamp, frame, sol.point_parent, sol.direction_parent, sol.cov_point_parent, sol.cov_direction_parent
                 )
             else:
-                msg = pose_with_covariance(stamp, frame, sol.centre_parent, sol.cov_parent)
-            self._local_pubs[name].publish(msg)
+                raw = pose_with_covariance_bytes(stamp, frame, sol.centre_parent, sol.cov_parent)
+            self._local_pubs[name].publish(raw)
 
     def _on_rviz_timer(self) -> None:
         markers = MarkerArray()
@@ -298,6 +317,7 @@ class JointfitNode(Node):
             "messages with label problems": self.counters["label_problems"],
             "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
             "input frame_id": self.router.frame_id,
+            "estimates solved in": "a worker process" if self._solver is not None else "the executor thread",
         }
         problems = ("malformed", "label_problems", "wrong_frame_id")
         level = WARN if any(self.counters[k] for k in problems) else OK
@@ -314,6 +334,12 @@ class JointfitNode(Node):
             st = runner.status()
             arr.status.append(diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values))
         self._diag_pub.publish(arr)
+
+    def destroy_node(self) -> None:
+        if self._solver is not None:
+            self._solver.close()
+            self._solver = None
+        super().destroy_node()
 
     # ------------------------------------------------------------------ services
 

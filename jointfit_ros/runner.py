@@ -23,7 +23,13 @@ from numpy.typing import NDArray
 
 from jointfit_core.calibration import load_calibration, save_calibration
 from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
-from jointfit_core.estimator import JointOutput, OnlineJoint, virtual_markers_template
+from jointfit_core.estimator import (
+    JointOutput,
+    OnlineJoint,
+    SolveRequest,
+    SolveResult,
+    virtual_markers_template,
+)
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import PoseSumsCentre
 
@@ -308,21 +314,49 @@ class JointRunner:
     def estimate(self, now: float | None = None, *, force: bool = False) -> bool:
         """Re-solve the window when ``estimate_period`` has passed (``now`` in seconds, monotonic).
 
-        Returns True when a new estimate was made. Failures are counted and described.
+        Returns True when the estimate is current (solved now, or no frame since the last solve).
+        Failures are counted and described.
         """
-        if not force and now is not None and now - self._last_solve < self.node.estimate_period:
-            return False
-        if now is not None:
-            self._last_solve = now
-        if self.estimator.frozen or not self.estimator.templates_ready or self.estimator.n_window < 3:
+        if not self._due(now, force):
             return False
         try:
             self.estimator.estimate()
         except (NotIdentifiableError, InputError) as exc:
-            self.counters["estimate_failures"] += 1
-            self.last_error = f"no estimate: {exc}"
+            self._failed(exc)
             return False
         return True
+
+    def solve_request(self, now: float | None = None, *, force: bool = False) -> SolveRequest | None:
+        """:meth:`estimate` in two halves, for a solve in another process: the window's snapshot.
+
+        None when no solve is due or needed (see :meth:`estimate`); give the
+        :func:`~jointfit_core.estimator.solve_window` result (or the error it raised) to :meth:`install`.
+        """
+        if not self._due(now, force):
+            return None
+        try:
+            return self.estimator.solve_request()
+        except InputError as exc:
+            self._failed(exc)
+            return None
+
+    def install(self, result: SolveResult | JointfitError) -> bool:
+        """Make a solve's result the estimate (False when stale: see :meth:`OnlineJoint.install`); count an error."""
+        if isinstance(result, JointfitError):
+            self._failed(result)
+            return False
+        return self.estimator.install(result)
+
+    def _due(self, now: float | None, force: bool) -> bool:
+        if not force and now is not None and now - self._last_solve < self.node.estimate_period:
+            return False
+        if now is not None:
+            self._last_solve = now
+        return not (self.estimator.frozen or not self.estimator.templates_ready or self.estimator.n_window < 3)
+
+    def _failed(self, exc: Exception) -> None:
+        self.counters["estimate_failures"] += 1
+        self.last_error = f"no estimate: {exc}"
 
     # ------------------------------------------------------------------ services
 
