@@ -37,6 +37,7 @@ from jointfit_ros.conversions import (
     pose_array_bytes,
     pose_from_pose_stamped,
     pose_with_covariance,
+    quaternion_from_rotation_matrix,
     quaternion_z_to_direction,
     rotation_matrix_from_quaternion,
     sphere_marker,
@@ -668,6 +669,25 @@ def test_rotation_matrix_from_quaternion() -> None:
     with pytest.raises(ConversionError, match=r"shape \(4,\)"):
         rotation_matrix_from_quaternion([0, 0, 1])
 
+
+
+def test_quaternion_from_rotation_matrix_matches_scipy() -> None:
+    # random rotations, and every branch of Shepperd's pivot: identity and the three half turns
+    mats = list(Rotation.random(2000, random_state=3).as_matrix())
+    mats += [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+    mats += list(Rotation.from_rotvec(np.pi * (1 - 1e-9) * np.eye(3)).as_matrix())  # near half turns
+    for R in mats:
+        q = quaternion_from_rotation_matrix(R)
+        ref = Rotation.from_matrix(R).as_quat()
+        ref = -ref if ref[3] < 0 else ref
+        assert q[3] >= 0.0 and abs(np.linalg.norm(q) - 1.0) < 1e-15
+        if q[3] > 1e-12:  # else q and -q are the same rotation, both with w = 0
+            np.testing.assert_allclose(q, ref, atol=1e-12)
+        np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), R, atol=1e-12)
+    with pytest.raises(ConversionError, match="finite"):
+        quaternion_from_rotation_matrix(np.full((3, 3), np.nan))
+    with pytest.raises(ConversionError, match=r"shape \(3, 3\)"):
+        quaternion_from_rotation_matrix(np.eye(2))
 
 def test_pose_with_covariance_layout() -> None:
     cov = np.array([[1.0, 0.1, 0.2], [0.1, 2.0, 0.3], [0.2, 0.3, 3.0]])
