@@ -136,6 +136,7 @@ class JointfitNode(Node):
         self._solver = SolverProcess() if self.cfg.solver_process else None
         self._jf_timers: dict[str, Any] = {}
         self._estimate_turn = -1  # the joint the estimate timer solved last
+        self._rviz_turn = -1  # the joint whose RViz markers were published last
         self._make_timers()
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/freeze", self._on_freeze)
@@ -202,7 +203,10 @@ class JointfitNode(Node):
         if self.cfg.local_rate > 0:
             self._jf_timers["local"] = self.create_timer(1.0 / self.cfg.local_rate, self._on_local_timer)
         if self.cfg.rviz_rate > 0:
-            self._jf_timers["rviz"] = self.create_timer(1.0 / self.cfg.rviz_rate, self._on_rviz_timer)
+            # one joint's markers per tick, in turn (each joint at rviz_rate): shorter ticks on the frames' thread
+            self._jf_timers["rviz"] = self.create_timer(
+                1.0 / self.cfg.rviz_rate / max(1, len(self.runners)), self._on_rviz_timer
+            )
 
     # ------------------------------------------------------------------ inputs
 
@@ -287,8 +291,15 @@ class JointfitNode(Node):
             self._local_pubs[name].publish(raw)
 
     def _on_rviz_timer(self) -> None:
+        names = list(self.runners)
+        if not names:
+            return
+        self._rviz_turn = (self._rviz_turn + 1) % len(names)
+        k = self._rviz_turn
+        name = names[k]
         markers = MarkerArray()
-        for k, (name, (stamp, frame, out)) in enumerate(sorted(self._last_outputs.items())):
+        if name in self._last_outputs:
+            stamp, frame, out = self._last_outputs[name]
             markers.markers.append(
                 covariance_ellipsoid_marker(
                     stamp, frame, out.position, out.cov, k_sigma=self.cfg.ellipsoid_sigma, ns=f"{name}/covariance",

@@ -180,7 +180,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "rviz_rate",
         "double",
         5.0,
-        "Rate (Hz) of `~/markers` (RViz MarkerArray); 0 disables it.",
+        "Rate (Hz) of each joint's `~/markers` (RViz MarkerArray, one joint per message in turn); 0 disables them.",
         minimum=0.0,
         runtime=True,
     ),
