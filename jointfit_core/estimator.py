@@ -14,7 +14,7 @@ residual (:mod:`jointfit_core.serial`).
 
 from __future__ import annotations
 
-import collections
+import heapq
 import itertools
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -303,20 +303,20 @@ def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatAr
 def _poses_many(
     Y: FloatArray, xc_t: FloatArray, wn: FloatArray, n: FloatArray, xbar: FloatArray, xx: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """:func:`_poses` of M frames at once, with the largest eigenpair found without LAPACK.
+    """:func:`_poses` of K posed segments at once (any frames, either side), with the largest eigenpair found without LAPACK.
 
     Parameters
     ----------
-    Y : ndarray, shape (M, 2, Pmax, 3)
-        Measured points, zero where missing or padding.
-    xc_t, wn, n, xbar, xx : ndarray, shapes (M, 2, 3, Pmax), (M, 2, Pmax), (M, 2), (M, 2, 3), (M, 2)
-        Each frame's :class:`_PairSet` fields.
+    Y : ndarray, shape (K, Pmax, 3)
+        Measured points of each segment, zero where missing or padding.
+    xc_t, wn, n, xbar, xx : ndarray, shapes (K, 3, Pmax), (K, Pmax), (K,), (K, 3), (K,)
+        That segment's fields of the frame's :class:`_PairSet` (one row of each).
 
     Returns
     -------
-    R : ndarray, shape (M, 2, 3, 3)
-    d : ndarray, shape (M, 2, 3)
-    ss : ndarray, shape (M, 2)
+    R : ndarray, shape (K, 3, 3)
+    d : ndarray, shape (K, 3)
+    ss : ndarray, shape (K,)
 
     Notes
     -----
@@ -325,16 +325,18 @@ def _poses_many(
     characteristic polynomial, eigenvector from the adjugate) instead of LAPACK's
     full ``eigh``, eight times faster on blocks. The poses equal the per-frame
     path's to ~1e-13 (rotation entries) and the residuals to ~1e-14 of the
-    point spread; each frame's result does not depend on the block it is in.
+    point spread; each segment's result does not depend on the block it is in.
+    Only segments that can be posed belong here (an empty set has no largest
+    eigenvalue to find).
     """
-    m = Y.shape[0]
-    ybar = (wn[:, :, None, :] @ Y)[:, :, 0]
+    k = Y.shape[0]
+    ybar = (wn[:, None, :] @ Y)[:, 0]
     S = xc_t @ Y
-    N = (S.reshape(m, 2, 9) @ _HORN_A.T).reshape(m, 2, 4, 4)
-    yy = (Y * Y).sum(axis=(2, 3)) - n * (ybar * ybar).sum(axis=2)
+    N = (S.reshape(k, 9) @ _HORN_A.T).reshape(k, 4, 4)
+    yy = (Y * Y).sum(axis=(1, 2)) - n * (ybar * ybar).sum(axis=1)
     lam, q = largest_eigenpair(N, S, 0.5 * (yy + xx))
-    R = ((q[:, :, :, None] * q[:, :, None, :]).reshape(m, 2, 16) @ _HORN_B.T).reshape(m, 2, 3, 3)
-    d = ybar - (R @ xbar[:, :, :, None])[:, :, :, 0]
+    R = ((q[:, :, None] * q[:, None, :]).reshape(k, 16) @ _HORN_B.T).reshape(k, 3, 3)
+    d = ybar - (R @ xbar[:, :, None])[:, :, 0]
     ss = np.maximum(yy + xx - 2.0 * lam, 0.0)
     return R, d, ss
 
@@ -1129,43 +1131,58 @@ class OnlineJoint:
         gate fails, which is safe: a frame that passes enters the sums the
         same way (to rounding) either way.
 
-        * Frames with one segment posed (and, while frozen, every frame with
-          a segment posed): one by one (they move that segment's reference).
-        * Residual: the comparison of :meth:`_add`, with a small margin: the
-          batched poses equal the per-frame ones to rounding only.
-        * Turn (:data:`GATE_MAX_TURN_DEG`): against the previous frame with
-          both segments posed, assuming it entered whole; with a small
-          margin. After each frame taken one by one, the next such frame is
-          tested again against the references as they then are.
+        * Frames with one segment posed pass the gate in bulk too: they enter
+          no sums, and a pass only moves that segment's turn reference (set
+          after each run: per segment, its pose in the run's last frame that
+          posed it). While frozen, every frame with a segment posed goes one
+          by one.
+        * Residual: the comparison of :meth:`_add`, per posed segment, with a
+          small margin: the batched poses equal the per-frame ones to
+          rounding only.
+        * Turn (:data:`GATE_MAX_TURN_DEG`): per segment, against its pose in
+          the previous frame that posed it, assuming that frame passed; with
+          a small margin. After each frame taken one by one, each segment's
+          next frame that poses it is tested again against the references as
+          they then are.
         """
         m = Y.shape[0]
         entered = parent_ok & child_ok
-        single = parent_ok ^ child_ok
         if self._frozen:
-            single = parent_ok | child_ok
+            posed_ok = np.zeros((0, 2), dtype=bool)
+            rows = np.zeros(0, dtype=np.intp)
+            sequential = parent_ok | child_ok
             entered = np.zeros(m, dtype=bool)
-        rows = np.flatnonzero(entered)
-        sequential = single.copy()
-        R = d = ss = np.zeros((0, 2))
+        else:
+            rows = np.flatnonzero(parent_ok | child_ok)
+            posed_ok = np.stack([parent_ok[rows], child_ok[rows]], axis=1)  # (K, 2)
+            sequential = np.zeros(m, dtype=bool)
+        R = np.zeros((rows.size, 2, 3, 3))
+        d = np.zeros((rows.size, 2, 3))
+        ss = np.zeros((rows.size, 2))
+        # per segment: rows (positions in ``rows``) that pose it, oldest first
+        seg_rows = [np.flatnonzero(posed_ok[:, k]) for k in range(2)]
         if rows.size:
-            R, d, ss = _poses_many(
-                Y[rows],
-                np.stack([ps.xc_t for ps in sets])[inverse[rows]],
-                np.stack([ps.wn for ps in sets])[inverse[rows]],
-                np.stack([ps.n for ps in sets])[inverse[rows]],
-                np.stack([ps.xbar for ps in sets])[inverse[rows]],
-                np.stack([ps.xx for ps in sets])[inverse[rows]],
+            which = inverse[rows]
+            fields = self._set_fields(sets)
+            R[posed_ok], d[posed_ok], ss[posed_ok] = _poses_many(
+                Y[rows][posed_ok], *(f[which][posed_ok] for f in fields[:5])
             )
-            dof = np.stack([ps.dof for ps in sets])[inverse[rows]]
-            candidate = np.any((ss > (1.0 - _SS_MARGIN) * gate_var * dof) & (dof > 0.0), axis=1)
-            close = np.diff(numbers[rows]) <= GATE_TURN_GAP_FRAMES
-            candidate[1:] |= close & (_cos_turn(R[1:], R[:-1]) < _COS_MAX_TURN + _COS_MARGIN).any(axis=1)
-            candidate[0] |= self._turns(R[0], int(numbers[rows[0]]))
+            dof = fields[5][which]
+            candidate = np.any((ss > (1.0 - _SS_MARGIN) * gate_var * dof) & (dof > 0.0) & posed_ok, axis=1)
+            for k in range(2):
+                pos = seg_rows[k]
+                if not pos.size:
+                    continue
+                close = np.diff(numbers[rows[pos]]) <= GATE_TURN_GAP_FRAMES
+                turn = _cos_turn(R[pos[1:], k], R[pos[:-1], k]) < _COS_MAX_TURN + _COS_MARGIN
+                candidate[pos[1:]] |= close & turn
+                candidate[pos[0]] |= self._turns_segment(k, R[pos[0], k], int(numbers[rows[pos[0]]]))
             sequential[rows[candidate]] = True
-        queue = collections.deque(np.flatnonzero(sequential).tolist())
+        queue = np.flatnonzero(sequential).tolist()  # a heap: frames to take one by one, oldest first
+        queued = set(queue)
         start = 0
         while True:
-            f = queue.popleft() if queue else m
+            f = heapq.heappop(queue) if queue else m
             run = np.flatnonzero(entered[start:f]) + start
             if run.size:
                 before_in = np.empty(run.size, dtype=bool)
@@ -1175,18 +1192,34 @@ class OnlineJoint:
                     before_in[0] = bool(entered[run[0] - 1])
                 pos = np.searchsorted(rows, run)  # the run's rows among the posed ones
                 self._push_block(Y[run], sets, inverse[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
-                self._set_references(R[pos[-1]], d[pos[-1]], int(numbers[run[-1]]))
             if start < f:
                 self._prev_in = bool(entered[f - 1])
+                lo, hi = np.searchsorted(rows, (start, f))
+                for k in range(2):
+                    seg = seg_rows[k]
+                    i = int(np.searchsorted(seg, hi)) - 1  # the run's last row that poses segment k
+                    if i >= 0 and seg[i] >= lo:
+                        self._set_reference(k, R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
             if f == m:
                 break
             self._Y[...] = Y[f]
             counted = (not bool(parent_ok[f]), not bool(child_ok[f]))
             self._add(missing[f], None if st is None else float(st[f]), int(numbers[f]), counted)
-            i = int(np.searchsorted(rows, f, side="right"))  # the next frame with both segments posed
-            if i < rows.size and (not queue or queue[0] > rows[i]) and self._turns(R[i], int(numbers[rows[i]])):
-                queue.appendleft(int(rows[i]))
+            after = int(np.searchsorted(rows, f, side="right"))
+            for k in range(2):
+                seg = seg_rows[k]
+                i = int(np.searchsorted(seg, after))  # the next row that poses segment k
+                if i < seg.size:
+                    g = int(rows[seg[i]])
+                    if g not in queued and self._turns_segment(k, R[seg[i], k], int(numbers[g])):
+                        heapq.heappush(queue, g)
+                        queued.add(g)
             start = f + 1
+
+    @staticmethod
+    def _set_fields(sets: list[_PairSet]) -> tuple[FloatArray, ...]:
+        """The pair sets' ``xc_t, wn, n, xbar, xx, dof`` stacked (one row per set), for gathers by frame."""
+        return tuple(np.stack([getattr(ps, name) for ps in sets]) for name in ("xc_t", "wn", "n", "xbar", "xx", "dof"))
 
     def _push_block(
         self,
@@ -1204,14 +1237,9 @@ class OnlineJoint:
         """
         m = Y.shape[0]
         if poses is None:
-            poses = _poses_many(
-                Y,
-                np.stack([ps.xc_t for ps in sets])[which],
-                np.stack([ps.wn for ps in sets])[which],
-                np.stack([ps.n for ps in sets])[which],
-                np.stack([ps.xbar for ps in sets])[which],
-                np.stack([ps.xx for ps in sets])[which],
-            )
+            fields = self._set_fields(sets)
+            R, d, ss = _poses_many(Y.reshape(2 * m, *Y.shape[2:]), *(f[which].reshape(2 * m, *f.shape[2:]) for f in fields[:5]))
+            poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
         R, d, ss = poses
         if self._sums is None:
             self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
@@ -1371,15 +1399,6 @@ class OnlineJoint:
             ok[1] and held[1] < GATE_RELOCK_FRAMES and frame_no - at[1] <= GATE_TURN_GAP_FRAMES,
         )
 
-    def _turns(self, R: FloatArray, frame_no: int) -> bool:
-        """Whether a segment of poses ``R`` (2, 3, 3) may fail the turn test now (with the batch margin)."""
-        active = self._turn_active(frame_no)
-        if not (active[0] or active[1]):
-            return False
-        cos = _cos_turn(R, self._R_ref)
-        margin = _COS_MAX_TURN + _COS_MARGIN
-        return (active[0] and bool(cos[0] < margin)) or (active[1] and bool(cos[1] < margin))
-
     def _set_references(self, R: FloatArray, d: FloatArray, frame_no: int) -> None:
         """Both segments passed the gate in frame ``frame_no`` with poses ``R`` (2, 3, 3), ``d`` (2, 3)."""
         self._R_ref[...] = R
@@ -1387,6 +1406,20 @@ class OnlineJoint:
         self._ref_ok = [True, True]
         self._ref_frame = [frame_no, frame_no]
         self._held = [0, 0]
+
+    def _turns_segment(self, k: int, R: FloatArray, frame_no: int) -> bool:
+        """Whether segment ``k`` of pose ``R`` (3, 3) may fail the turn test now (with the batch margin)."""
+        if not self._turn_active(frame_no)[k]:
+            return False
+        return bool(_cos_turn(R, self._R_ref[k]) < _COS_MAX_TURN + _COS_MARGIN)
+
+    def _set_reference(self, k: int, R: FloatArray, d: FloatArray, frame_no: int) -> None:
+        """Segment ``k`` passed the gate in frame ``frame_no`` with pose ``R`` (3, 3), ``d`` (3,)."""
+        self._R_ref[k] = R
+        self._d_ref[k] = d
+        self._ref_ok[k] = True
+        self._ref_frame[k] = frame_no
+        self._held[k] = 0
 
     def _relabelling(self, k: int, vs: _VisibleSet) -> NDArray[np.intp] | None:
         """Segment ``k``'s visible markers in ``self._Y`` as its reference's markers relabelled, or None.
@@ -1535,11 +1568,7 @@ class OnlineJoint:
                 self._set_references(R, d, frame_no)
             else:
                 k = 0 if ps.parent is not None else 1
-                self._R_ref[k] = R[k]
-                self._d_ref[k] = d[k]
-                self._ref_ok[k] = True
-                self._ref_frame[k] = frame_no
-                self._held[k] = 0
+                self._set_reference(k, R[k], d[k], frame_no)
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view
