@@ -27,7 +27,7 @@ from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
-from .quaternion_fit import largest_eigenpair
+from .quaternion_fit import largest_eigenpair_entries
 from .segments import (
     AXIS_SD_MAX_DEG,
     POSE_VAR_RATIO_MAX,
@@ -330,13 +330,15 @@ def _poses_many(
     eigenvalue to find).
     """
     k = Y.shape[0]
-    ybar = (wn[:, None, :] @ Y)[:, 0]
+    ybar = np.einsum("kp,kpi->ki", wn, Y)
     S = xc_t @ Y
-    N = (S.reshape(k, 9) @ _HORN_A.T).reshape(k, 4, 4)
-    yy = (Y * Y).sum(axis=(1, 2)) - n * (ybar * ybar).sum(axis=1)
-    lam, q = largest_eigenpair(N, S, 0.5 * (yy + xx))
-    R = ((q[:, :, None] * q[:, None, :]).reshape(k, 16) @ _HORN_B.T).reshape(k, 3, 3)
-    d = ybar - (R @ xbar[:, :, None])[:, :, 0]
+    # Horn's N and the rotations entries first, (16, K) and (9, K): one matrix product each, and
+    # the eigen-solve's elementwise steps on contiguous rows
+    Nt = (_HORN_A @ S.reshape(k, 9).T).reshape(4, 4, k)
+    yy = np.einsum("kpi,kpi->k", Y, Y) - n * np.einsum("ki,ki->k", ybar, ybar)
+    lam, q = largest_eigenpair_entries(Nt, S, 0.5 * (yy + xx))
+    R = (_HORN_B @ (q[:, None, :] * q[None, :, :]).reshape(16, k)).T.reshape(k, 3, 3)
+    d = ybar - np.einsum("kij,kj->ki", R, xbar)
     ss = np.maximum(yy + xx - 2.0 * lam, 0.0)
     return R, d, ss
 
