@@ -246,9 +246,10 @@ class _PairSet:
     xx: FloatArray  # (2,)
     W_flat: FloatArray  # (72,) unit W_p and W_c, raveled (zeros when a segment is not posed)
     dof: FloatArray  # (2,)
+    slot: int  # its row in the estimator's stacked table of pair sets (OnlineJoint._pair_table)
 
 
-def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int) -> _PairSet:
+def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int, slot: int) -> _PairSet:
     xc = np.zeros((2, p_max, 3))
     wn = np.zeros((2, p_max))
     n = np.ones(2)
@@ -266,7 +267,7 @@ def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int)
         xx[k] = vs.xx
         W[k] = vs.W_unit.ravel()
         dof[k] = vs.dof
-    return _PairSet(parent, child, np.ascontiguousarray(np.swapaxes(xc, 1, 2)), wn, n, xbar, xx, W.ravel(), dof)
+    return _PairSet(parent, child, np.ascontiguousarray(np.swapaxes(xc, 1, 2)), wn, n, xbar, xx, W.ravel(), dof, slot)
 
 
 def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -804,6 +805,7 @@ class OnlineJoint:
         self._gate_key: tuple[float, bool, tuple[float, float]] | None = None
         self._gate_cache: FloatArray | None = None
         self._pairs: dict[bytes, _PairSet] = {}
+        self._table: tuple[FloatArray, ...] = ()
         self._Y = np.zeros((0, 0, 3))
         self._none_missing: NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
         self._missing: NDArray[np.bool_] = self._none_missing
@@ -885,6 +887,7 @@ class OnlineJoint:
         self._none_missing = np.zeros((2, max(n_parent, n_child)), dtype=bool)
         self._missing = self._none_missing
         self._pairs = {}
+        self._table = ()
 
     def _drop(self, reason: str) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
@@ -1092,13 +1095,14 @@ class OnlineJoint:
         sets = [self._pair(missing[i]) for i in first]
         parent_ok = np.array([ps.parent is not None for ps in sets])[inverse]
         child_ok = np.array([ps.child is not None for ps in sets])[inverse]
+        slots = np.array([ps.slot for ps in sets])[inverse]  # each frame's pair set, as its row in _pair_table
         for reason, ok in (("parent_not_posed", parent_ok), ("child_not_posed", child_ok)):
             bad = int(m - np.count_nonzero(ok))
             if bad:
                 self.dropped[reason] = self.dropped.get(reason, 0) + bad
         gate_var = self._gate_var()
         if gate_var is not None:
-            self._gated_block(Y, missing, sets, inverse, parent_ok, child_ok, st, gate_var, numbers)
+            self._gated_block(Y, missing, slots, parent_ok, child_ok, st, gate_var, numbers)
             return
         entered = parent_ok & child_ok
         if self._frozen:
@@ -1109,15 +1113,14 @@ class OnlineJoint:
             before_in = np.empty(m, dtype=bool)
             before_in[0] = self._prev_in
             before_in[1:] = entered[:-1]
-            self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows)
+            self._push_block(Y[rows], slots[rows], before_in[rows], st, rows)
         self._prev_in = bool(entered[-1])
 
     def _gated_block(
         self,
         Y: FloatArray,
         missing: NDArray[np.bool_],
-        sets: list[_PairSet],
-        inverse: NDArray[np.intp],
+        slots: NDArray[np.intp],
         parent_ok: NDArray[np.bool_],
         child_ok: NDArray[np.bool_],
         st: FloatArray | None,
@@ -1161,24 +1164,32 @@ class OnlineJoint:
         R = np.zeros((rows.size, 2, 3, 3))
         d = np.zeros((rows.size, 2, 3))
         ss = np.zeros((rows.size, 2))
+        # the posed segments, row after row: positions in ``rows`` and sides (0 parent, 1 child)
+        posed = np.flatnonzero(posed_ok.ravel())
+        at, side = np.divmod(posed, 2)
         # per segment: rows (positions in ``rows``) that pose it, oldest first
-        seg_rows = [np.flatnonzero(posed_ok[:, k]) for k in range(2)]
+        seg_rows = [at[side == k] for k in range(2)]
         if rows.size:
-            which = inverse[rows]
-            fields = self._set_fields(sets)
-            R[posed_ok], d[posed_ok], ss[posed_ok] = _poses_many(
-                Y[rows][posed_ok], *(f[which][posed_ok] for f in fields[:5])
+            fields = self._pair_table()
+            seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
+            Rs, ds, sss = _poses_many(
+                Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side],
+                *(f.reshape(2 * f.shape[0], *f.shape[2:])[seg] for f in fields[:5]),
             )
-            dof = fields[5][which]
-            candidate = np.any((ss > (1.0 - _SS_MARGIN) * gate_var * dof) & (dof > 0.0) & posed_ok, axis=1)
+            R.reshape(-1, 3, 3)[posed] = Rs
+            d.reshape(-1, 3)[posed] = ds
+            ss.reshape(-1)[posed] = sss
+            dof = fields[5].reshape(-1)[seg]
+            candidate = np.zeros(rows.size, dtype=bool)
+            candidate[at[(sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)]] = True
             for k in range(2):
                 pos = seg_rows[k]
                 if not pos.size:
                     continue
+                Rk = Rs[side == k]
                 close = np.diff(numbers[rows[pos]]) <= GATE_TURN_GAP_FRAMES
-                turn = _cos_turn(R[pos[1:], k], R[pos[:-1], k]) < _COS_MAX_TURN + _COS_MARGIN
-                candidate[pos[1:]] |= close & turn
-                candidate[pos[0]] |= self._turns_segment(k, R[pos[0], k], int(numbers[rows[pos[0]]]))
+                candidate[pos[1:]] |= close & (_cos_turn(Rk[1:], Rk[:-1]) < _COS_MAX_TURN + _COS_MARGIN)
+                candidate[pos[0]] |= self._turns_segment(k, Rk[0], int(numbers[rows[pos[0]]]))
             sequential[rows[candidate]] = True
         queue = np.flatnonzero(sequential).tolist()  # a heap: frames to take one by one, oldest first
         queued = set(queue)
@@ -1193,7 +1204,7 @@ class OnlineJoint:
                 if run[0] > start:
                     before_in[0] = bool(entered[run[0] - 1])
                 pos = np.searchsorted(rows, run)  # the run's rows among the posed ones
-                self._push_block(Y[run], sets, inverse[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
+                self._push_block(Y[run], slots[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
             if start < f:
                 self._prev_in = bool(entered[f - 1])
                 lo, hi = np.searchsorted(rows, (start, f))
@@ -1218,28 +1229,33 @@ class OnlineJoint:
                         queued.add(g)
             start = f + 1
 
-    @staticmethod
-    def _set_fields(sets: list[_PairSet]) -> tuple[FloatArray, ...]:
-        """The pair sets' ``xc_t, wn, n, xbar, xx, dof`` stacked (one row per set), for gathers by frame."""
-        return tuple(np.stack([getattr(ps, name) for ps in sets]) for name in ("xc_t", "wn", "n", "xbar", "xx", "dof"))
+    def _pair_table(self) -> tuple[FloatArray, ...]:
+        """Every cached pair set's ``xc_t, wn, n, xbar, xx, dof, W_flat`` stacked, row ``ps.slot``, for gathers by frame.
+
+        Rebuilt only when pair sets were added (a new visibility pattern), not per block.
+        """
+        if not self._table or self._table[0].shape[0] != len(self._pairs):
+            sets = list(self._pairs.values())
+            names = ("xc_t", "wn", "n", "xbar", "xx", "dof", "W_flat")
+            self._table = tuple(np.stack([getattr(ps, name) for ps in sets]) for name in names)
+        return self._table
 
     def _push_block(
         self,
         Y: FloatArray,
-        sets: list[_PairSet],
         which: NDArray[np.intp],
         paired: NDArray[np.bool_],
         st: FloatArray | None,
         rows: NDArray[np.intp],
         poses: tuple[FloatArray, FloatArray, FloatArray] | None = None,
     ) -> None:
-        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair set ``sets[which]``) and push them.
+        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair sets of slots ``which``) and push them.
 
         ``rows``: their indices in the block. ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
         """
         m = Y.shape[0]
         if poses is None:
-            fields = self._set_fields(sets)
+            fields = self._pair_table()
             R, d, ss = _poses_many(Y.reshape(2 * m, *Y.shape[2:]), *(f[which].reshape(2 * m, *f.shape[2:]) for f in fields[:5]))
             poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
         R, d, ss = poses
@@ -1256,8 +1272,8 @@ class OnlineJoint:
         z_prev[0] = self._z_prev
         z_prev[1:] = z[:-1]
         pr = np.flatnonzero(paired)
-        W_sets = np.stack([ps.W_flat for ps in sets])
-        dof_sets = np.stack([ps.dof for ps in sets])
+        table = self._pair_table()
+        dof_sets, W_sets = table[5], table[6]
         if self._sums.spec.exponential:
             # No window ring to keep records for: sum the block's weighted contributions with
             # matrix products, never forming them one per frame.
@@ -1266,7 +1282,7 @@ class OnlineJoint:
             total[0] = w.sum()
             total[_Z] = w @ zf
             total[_ZZ] = ((zf * w[:, None]).T @ zf).ravel()
-            set_weight = np.bincount(which, weights=w, minlength=len(sets))
+            set_weight = np.bincount(which, weights=w, minlength=W_sets.shape[0])
             total[_W] = set_weight @ W_sets
             total[_SS : _SS + 4 : 2] = w @ ss
             total[_SS + 1 : _SS + 4 : 2] = set_weight @ dof_sets
@@ -1361,6 +1377,7 @@ class OnlineJoint:
                 self._parent.visible_set(~missing[0, :pa]),
                 self._child.visible_set(~missing[1, :pc]),
                 max(pa, pc),
+                len(self._pairs),
             )
             self._pairs[key] = ps
         return ps
