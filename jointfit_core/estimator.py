@@ -1271,7 +1271,6 @@ class OnlineJoint:
         z_prev = np.empty_like(z)
         z_prev[0] = self._z_prev
         z_prev[1:] = z[:-1]
-        pr = np.flatnonzero(paired)
         table = self._pair_table()
         dof_sets, W_sets = table[5], table[6]
         if self._sums.spec.exponential:
@@ -1286,13 +1285,15 @@ class OnlineJoint:
             total[_W] = set_weight @ W_sets
             total[_SS : _SS + 4 : 2] = w @ ss
             total[_SS + 1 : _SS + 4 : 2] = set_weight @ dof_sets
-            wp = w[pr]
+            # rows without a lag pair weigh zero (cheaper than gathering the paired rows)
+            wp = w * paired
             total[_LAG] = wp.sum()
-            total[_LAG + 1 : _LAG + 13] = wp @ (z[pr] + z_prev[pr]).reshape(pr.size, 12)
-            cross = (z[pr] * wp[:, None, None]).reshape(-1, 4).T @ z_prev[pr].reshape(-1, 4)
+            total[_LAG + 1 : _LAG + 13] = wp @ (z + z_prev).reshape(m, 12)
+            cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
             total[_LAG + 13 :] = cross.ravel()
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
+            pr = np.flatnonzero(paired)
             c = np.empty((m, _N_SUMS))
             c[:, 0] = 1.0
             c[:, _Z] = zf
