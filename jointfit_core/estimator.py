@@ -1172,10 +1172,7 @@ class OnlineJoint:
         if rows.size:
             fields = self._pair_table()
             seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
-            Rs, ds, sss = _poses_many(
-                Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side],
-                *(f.reshape(2 * f.shape[0], *f.shape[2:])[seg] for f in fields[:5]),
-            )
+            Rs, ds, sss = _poses_many(Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side], *self._pose_fields(seg))
             R.reshape(-1, 3, 3)[posed] = Rs
             d.reshape(-1, 3)[posed] = ds
             ss.reshape(-1)[posed] = sss
@@ -1232,13 +1229,26 @@ class OnlineJoint:
     def _pair_table(self) -> tuple[FloatArray, ...]:
         """Every cached pair set's ``xc_t, wn, n, xbar, xx, dof, W_flat`` stacked, row ``ps.slot``, for gathers by frame.
 
+        Then the first five side by side per segment, ``(2 slots, 5 Pmax + 5)``, row ``2 slot + side``
+        (:meth:`_pose_fields`).
+
         Rebuilt only when pair sets were added (a new visibility pattern), not per block.
         """
         if not self._table or self._table[0].shape[0] != len(self._pairs):
             sets = list(self._pairs.values())
             names = ("xc_t", "wn", "n", "xbar", "xx", "dof", "W_flat")
-            self._table = tuple(np.stack([getattr(ps, name) for ps in sets]) for name in names)
+            table = [np.stack([getattr(ps, name) for ps in sets]) for name in names]
+            # the pose fit's fields side by side, one row per (slot, side): one gather per block
+            rows = 2 * len(sets)
+            table.append(np.concatenate([f.reshape(rows, -1) for f in table[:5]], axis=1))
+            self._table = tuple(table)
         return self._table
+
+    def _pose_fields(self, seg: NDArray[np.intp]) -> tuple[FloatArray, ...]:
+        """:func:`_poses_many`'s ``xc_t, wn, n, xbar, xx`` of the segments at rows ``seg`` (``2 slot + side``) of the table."""
+        g = self._pair_table()[7][seg]
+        p = self._Y.shape[1]
+        return g[:, : 3 * p].reshape(-1, 3, p), g[:, 3 * p : 4 * p], g[:, 4 * p], g[:, 4 * p + 1 : 4 * p + 4], g[:, 4 * p + 4]
 
     def _push_block(
         self,
@@ -1255,8 +1265,8 @@ class OnlineJoint:
         """
         m = Y.shape[0]
         if poses is None:
-            fields = self._pair_table()
-            R, d, ss = _poses_many(Y.reshape(2 * m, *Y.shape[2:]), *(f[which].reshape(2 * m, *f.shape[2:]) for f in fields[:5]))
+            seg = (2 * which[:, None] + np.arange(2)).ravel()
+            R, d, ss = _poses_many(Y.reshape(2 * m, *Y.shape[2:]), *self._pose_fields(seg))
             poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
         R, d, ss = poses
         if self._sums is None:
