@@ -14,7 +14,7 @@ residual (:mod:`jointfit_core.serial`).
 
 from __future__ import annotations
 
-import collections
+import heapq
 import itertools
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -27,7 +27,7 @@ from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
-from .quaternion_fit import largest_eigenpair
+from .quaternion_fit import largest_eigenpair_entries
 from .segments import (
     AXIS_SD_MAX_DEG,
     POSE_VAR_RATIO_MAX,
@@ -255,9 +255,10 @@ class _PairSet:
     xx: FloatArray  # (2,)
     W_flat: FloatArray  # (72,) unit W_p and W_c, raveled (zeros when a segment is not posed)
     dof: FloatArray  # (2,)
+    slot: int  # its row in the estimator's stacked table of pair sets (OnlineJoint._pair_table)
 
 
-def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int) -> _PairSet:
+def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int, slot: int) -> _PairSet:
     xc = np.zeros((2, p_max, 3))
     wn = np.zeros((2, p_max))
     n = np.ones(2)
@@ -275,7 +276,7 @@ def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int)
         xx[k] = vs.xx
         W[k] = vs.W_unit.ravel()
         dof[k] = vs.dof
-    return _PairSet(parent, child, np.ascontiguousarray(np.swapaxes(xc, 1, 2)), wn, n, xbar, xx, W.ravel(), dof)
+    return _PairSet(parent, child, np.ascontiguousarray(np.swapaxes(xc, 1, 2)), wn, n, xbar, xx, W.ravel(), dof, slot)
 
 
 def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -312,20 +313,20 @@ def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatAr
 def _poses_many(
     Y: FloatArray, xc_t: FloatArray, wn: FloatArray, n: FloatArray, xbar: FloatArray, xx: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """:func:`_poses` of M frames at once, with the largest eigenpair found without LAPACK.
+    """:func:`_poses` of K posed segments at once (any frames, either side), with the largest eigenpair found without LAPACK.
 
     Parameters
     ----------
-    Y : ndarray, shape (M, 2, Pmax, 3)
-        Measured points, zero where missing or padding.
-    xc_t, wn, n, xbar, xx : ndarray, shapes (M, 2, 3, Pmax), (M, 2, Pmax), (M, 2), (M, 2, 3), (M, 2)
-        Each frame's :class:`_PairSet` fields.
+    Y : ndarray, shape (K, Pmax, 3)
+        Measured points of each segment, zero where missing or padding.
+    xc_t, wn, n, xbar, xx : ndarray, shapes (K, 3, Pmax), (K, Pmax), (K,), (K, 3), (K,)
+        That segment's fields of the frame's :class:`_PairSet` (one row of each).
 
     Returns
     -------
-    R : ndarray, shape (M, 2, 3, 3)
-    d : ndarray, shape (M, 2, 3)
-    ss : ndarray, shape (M, 2)
+    R : ndarray, shape (K, 3, 3)
+    d : ndarray, shape (K, 3)
+    ss : ndarray, shape (K,)
 
     Notes
     -----
@@ -334,16 +335,20 @@ def _poses_many(
     characteristic polynomial, eigenvector from the adjugate) instead of LAPACK's
     full ``eigh``, eight times faster on blocks. The poses equal the per-frame
     path's to ~1e-13 (rotation entries) and the residuals to ~1e-14 of the
-    point spread; each frame's result does not depend on the block it is in.
+    point spread; each segment's result does not depend on the block it is in.
+    Only segments that can be posed belong here (an empty set has no largest
+    eigenvalue to find).
     """
-    m = Y.shape[0]
-    ybar = (wn[:, :, None, :] @ Y)[:, :, 0]
+    k = Y.shape[0]
+    ybar = np.einsum("kp,kpi->ki", wn, Y)
     S = xc_t @ Y
-    N = (S.reshape(m, 2, 9) @ _HORN_A.T).reshape(m, 2, 4, 4)
-    yy = (Y * Y).sum(axis=(2, 3)) - n * (ybar * ybar).sum(axis=2)
-    lam, q = largest_eigenpair(N, S, 0.5 * (yy + xx))
-    R = ((q[:, :, :, None] * q[:, :, None, :]).reshape(m, 2, 16) @ _HORN_B.T).reshape(m, 2, 3, 3)
-    d = ybar - (R @ xbar[:, :, :, None])[:, :, :, 0]
+    # Horn's N and the rotations entries first, (16, K) and (9, K): one matrix product each, and
+    # the eigen-solve's elementwise steps on contiguous rows
+    Nt = (_HORN_A @ S.reshape(k, 9).T).reshape(4, 4, k)
+    yy = np.einsum("kpi,kpi->k", Y, Y) - n * np.einsum("ki,ki->k", ybar, ybar)
+    lam, q = largest_eigenpair_entries(Nt, S, 0.5 * (yy + xx))
+    R = (_HORN_B @ (q[:, None, :] * q[None, :, :]).reshape(16, k)).T.reshape(k, 3, 3)
+    d = ybar - np.einsum("kij,kj->ki", R, xbar)
     ss = np.maximum(yy + xx - 2.0 * lam, 0.0)
     return R, d, ss
 
@@ -937,6 +942,7 @@ class OnlineJoint:
         self._gate_key: tuple[float, bool, tuple[float, float]] | None = None
         self._gate_cache: FloatArray | None = None
         self._pairs: dict[bytes, _PairSet] = {}
+        self._table: tuple[FloatArray, ...] = ()
         self._Y = np.zeros((0, 0, 3))
         self._none_missing: NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
         self._missing: NDArray[np.bool_] = self._none_missing
@@ -1019,6 +1025,7 @@ class OnlineJoint:
         self._none_missing = np.zeros((2, max(n_parent, n_child)), dtype=bool)
         self._missing = self._none_missing
         self._pairs = {}
+        self._table = ()
 
     def _drop(self, reason: str) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
@@ -1226,13 +1233,14 @@ class OnlineJoint:
         sets = [self._pair(missing[i]) for i in first]
         parent_ok = np.array([ps.parent is not None for ps in sets])[inverse]
         child_ok = np.array([ps.child is not None for ps in sets])[inverse]
+        slots = np.array([ps.slot for ps in sets])[inverse]  # each frame's pair set, as its row in _pair_table
         for reason, ok in (("parent_not_posed", parent_ok), ("child_not_posed", child_ok)):
             bad = int(m - np.count_nonzero(ok))
             if bad:
                 self.dropped[reason] = self.dropped.get(reason, 0) + bad
         gate_var = self._gate_var()
         if gate_var is not None:
-            self._gated_block(Y, missing, sets, inverse, parent_ok, child_ok, st, gate_var, numbers)
+            self._gated_block(Y, missing, slots, parent_ok, child_ok, st, gate_var, numbers)
             return
         entered = parent_ok & child_ok
         if self._frozen:
@@ -1243,15 +1251,14 @@ class OnlineJoint:
             before_in = np.empty(m, dtype=bool)
             before_in[0] = self._prev_in
             before_in[1:] = entered[:-1]
-            self._push_block(Y[rows], sets, inverse[rows], before_in[rows], st, rows)
+            self._push_block(Y[rows], slots[rows], before_in[rows], st, rows)
         self._prev_in = bool(entered[-1])
 
     def _gated_block(
         self,
         Y: FloatArray,
         missing: NDArray[np.bool_],
-        sets: list[_PairSet],
-        inverse: NDArray[np.intp],
+        slots: NDArray[np.intp],
         parent_ok: NDArray[np.bool_],
         child_ok: NDArray[np.bool_],
         st: FloatArray | None,
@@ -1267,43 +1274,63 @@ class OnlineJoint:
         gate fails, which is safe: a frame that passes enters the sums the
         same way (to rounding) either way.
 
-        * Frames with one segment posed (and, while frozen, every frame with
-          a segment posed): one by one (they move that segment's reference).
-        * Residual: the comparison of :meth:`_add`, with a small margin: the
-          batched poses equal the per-frame ones to rounding only.
-        * Turn (:data:`GATE_MAX_TURN_DEG`): against the previous frame with
-          both segments posed, assuming it entered whole; with a small
-          margin. After each frame taken one by one, the next such frame is
-          tested again against the references as they then are.
+        * Frames with one segment posed pass the gate in bulk too: they enter
+          no sums, and a pass only moves that segment's turn reference (set
+          after each run: per segment, its pose in the run's last frame that
+          posed it). While frozen, every frame with a segment posed goes one
+          by one.
+        * Residual: the comparison of :meth:`_add`, per posed segment, with a
+          small margin: the batched poses equal the per-frame ones to
+          rounding only.
+        * Turn (:data:`GATE_MAX_TURN_DEG`): per segment, against its pose in
+          the previous frame that posed it, assuming that frame passed; with
+          a small margin. After each frame taken one by one, each segment's
+          next frame that poses it is tested again against the references as
+          they then are.
         """
         m = Y.shape[0]
         entered = parent_ok & child_ok
-        single = parent_ok ^ child_ok
         if self._frozen:
-            single = parent_ok | child_ok
+            posed_ok = np.zeros((0, 2), dtype=bool)
+            rows = np.zeros(0, dtype=np.intp)
+            sequential = parent_ok | child_ok
             entered = np.zeros(m, dtype=bool)
-        rows = np.flatnonzero(entered)
-        sequential = single.copy()
-        R = d = ss = np.zeros((0, 2))
+        else:
+            rows = np.flatnonzero(parent_ok | child_ok)
+            posed_ok = np.stack([parent_ok[rows], child_ok[rows]], axis=1)  # (K, 2)
+            sequential = np.zeros(m, dtype=bool)
+        R = np.zeros((rows.size, 2, 3, 3))
+        d = np.zeros((rows.size, 2, 3))
+        ss = np.zeros((rows.size, 2))
+        # the posed segments, row after row: positions in ``rows`` and sides (0 parent, 1 child)
+        posed = np.flatnonzero(posed_ok.ravel())
+        at, side = np.divmod(posed, 2)
+        # per segment: rows (positions in ``rows``) that pose it, oldest first
+        seg_rows = [at[side == k] for k in range(2)]
         if rows.size:
-            R, d, ss = _poses_many(
-                Y[rows],
-                np.stack([ps.xc_t for ps in sets])[inverse[rows]],
-                np.stack([ps.wn for ps in sets])[inverse[rows]],
-                np.stack([ps.n for ps in sets])[inverse[rows]],
-                np.stack([ps.xbar for ps in sets])[inverse[rows]],
-                np.stack([ps.xx for ps in sets])[inverse[rows]],
-            )
-            dof = np.stack([ps.dof for ps in sets])[inverse[rows]]
-            candidate = np.any((ss > (1.0 - _SS_MARGIN) * gate_var * dof) & (dof > 0.0), axis=1)
-            close = np.diff(numbers[rows]) <= GATE_TURN_GAP_FRAMES
-            candidate[1:] |= close & (_cos_turn(R[1:], R[:-1]) < _COS_MAX_TURN + _COS_MARGIN).any(axis=1)
-            candidate[0] |= self._turns(R[0], int(numbers[rows[0]]))
+            fields = self._pair_table()
+            seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
+            Rs, ds, sss = _poses_many(Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side], *self._pose_fields(seg))
+            R.reshape(-1, 3, 3)[posed] = Rs
+            d.reshape(-1, 3)[posed] = ds
+            ss.reshape(-1)[posed] = sss
+            dof = fields[5].reshape(-1)[seg]
+            candidate = np.zeros(rows.size, dtype=bool)
+            candidate[at[(sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)]] = True
+            for k in range(2):
+                pos = seg_rows[k]
+                if not pos.size:
+                    continue
+                Rk = Rs[side == k]
+                close = np.diff(numbers[rows[pos]]) <= GATE_TURN_GAP_FRAMES
+                candidate[pos[1:]] |= close & (_cos_turn(Rk[1:], Rk[:-1]) < _COS_MAX_TURN + _COS_MARGIN)
+                candidate[pos[0]] |= self._turns_segment(k, Rk[0], int(numbers[rows[pos[0]]]))
             sequential[rows[candidate]] = True
-        queue = collections.deque(np.flatnonzero(sequential).tolist())
+        queue = np.flatnonzero(sequential).tolist()  # a heap: frames to take one by one, oldest first
+        queued = set(queue)
         start = 0
         while True:
-            f = queue.popleft() if queue else m
+            f = heapq.heappop(queue) if queue else m
             run = np.flatnonzero(entered[start:f]) + start
             if run.size:
                 before_in = np.empty(run.size, dtype=bool)
@@ -1312,44 +1339,73 @@ class OnlineJoint:
                 if run[0] > start:
                     before_in[0] = bool(entered[run[0] - 1])
                 pos = np.searchsorted(rows, run)  # the run's rows among the posed ones
-                self._push_block(Y[run], sets, inverse[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
-                self._set_references(R[pos[-1]], d[pos[-1]], int(numbers[run[-1]]))
+                self._push_block(Y[run], slots[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
             if start < f:
                 self._prev_in = bool(entered[f - 1])
+                lo, hi = np.searchsorted(rows, (start, f))
+                for k in range(2):
+                    seg = seg_rows[k]
+                    i = int(np.searchsorted(seg, hi)) - 1  # the run's last row that poses segment k
+                    if i >= 0 and seg[i] >= lo:
+                        self._set_reference(k, R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
             if f == m:
                 break
             self._Y[...] = Y[f]
             counted = (not bool(parent_ok[f]), not bool(child_ok[f]))
             self._add(missing[f], None if st is None else float(st[f]), int(numbers[f]), counted)
-            i = int(np.searchsorted(rows, f, side="right"))  # the next frame with both segments posed
-            if i < rows.size and (not queue or queue[0] > rows[i]) and self._turns(R[i], int(numbers[rows[i]])):
-                queue.appendleft(int(rows[i]))
+            after = int(np.searchsorted(rows, f, side="right"))
+            for k in range(2):
+                seg = seg_rows[k]
+                i = int(np.searchsorted(seg, after))  # the next row that poses segment k
+                if i < seg.size:
+                    g = int(rows[seg[i]])
+                    if g not in queued and self._turns_segment(k, R[seg[i], k], int(numbers[g])):
+                        heapq.heappush(queue, g)
+                        queued.add(g)
             start = f + 1
+
+    def _pair_table(self) -> tuple[FloatArray, ...]:
+        """Every cached pair set's ``xc_t, wn, n, xbar, xx, dof, W_flat`` stacked, row ``ps.slot``, for gathers by frame.
+
+        Then the first five side by side per segment, ``(2 slots, 5 Pmax + 5)``, row ``2 slot + side``
+        (:meth:`_pose_fields`).
+
+        Rebuilt only when pair sets were added (a new visibility pattern), not per block.
+        """
+        if not self._table or self._table[0].shape[0] != len(self._pairs):
+            sets = list(self._pairs.values())
+            names = ("xc_t", "wn", "n", "xbar", "xx", "dof", "W_flat")
+            table = [np.stack([getattr(ps, name) for ps in sets]) for name in names]
+            # the pose fit's fields side by side, one row per (slot, side): one gather per block
+            rows = 2 * len(sets)
+            table.append(np.concatenate([f.reshape(rows, -1) for f in table[:5]], axis=1))
+            self._table = tuple(table)
+        return self._table
+
+    def _pose_fields(self, seg: NDArray[np.intp]) -> tuple[FloatArray, ...]:
+        """:func:`_poses_many`'s ``xc_t, wn, n, xbar, xx`` of the segments at rows ``seg`` (``2 slot + side``) of the table."""
+        g = self._pair_table()[7][seg]
+        p = self._Y.shape[1]
+        return g[:, : 3 * p].reshape(-1, 3, p), g[:, 3 * p : 4 * p], g[:, 4 * p], g[:, 4 * p + 1 : 4 * p + 4], g[:, 4 * p + 4]
 
     def _push_block(
         self,
         Y: FloatArray,
-        sets: list[_PairSet],
         which: NDArray[np.intp],
         paired: NDArray[np.bool_],
         st: FloatArray | None,
         rows: NDArray[np.intp],
         poses: tuple[FloatArray, FloatArray, FloatArray] | None = None,
     ) -> None:
-        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair set ``sets[which]``) and push them.
+        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair sets of slots ``which``) and push them.
 
         ``rows``: their indices in the block. ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
         """
         m = Y.shape[0]
         if poses is None:
-            poses = _poses_many(
-                Y,
-                np.stack([ps.xc_t for ps in sets])[which],
-                np.stack([ps.wn for ps in sets])[which],
-                np.stack([ps.n for ps in sets])[which],
-                np.stack([ps.xbar for ps in sets])[which],
-                np.stack([ps.xx for ps in sets])[which],
-            )
+            seg = (2 * which[:, None] + np.arange(2)).ravel()
+            R, d, ss = _poses_many(Y.reshape(2 * m, *Y.shape[2:]), *self._pose_fields(seg))
+            poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
         R, d, ss = poses
         if self._sums is None:
             self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
@@ -1363,9 +1419,8 @@ class OnlineJoint:
         z_prev = np.empty_like(z)
         z_prev[0] = self._z_prev
         z_prev[1:] = z[:-1]
-        pr = np.flatnonzero(paired)
-        W_sets = np.stack([ps.W_flat for ps in sets])
-        dof_sets = np.stack([ps.dof for ps in sets])
+        table = self._pair_table()
+        dof_sets, W_sets = table[5], table[6]
         if self._sums.spec.exponential:
             # No window ring to keep records for: sum the block's weighted contributions with
             # matrix products, never forming them one per frame.
@@ -1374,17 +1429,19 @@ class OnlineJoint:
             total[0] = w.sum()
             total[_Z] = w @ zf
             total[_ZZ] = ((zf * w[:, None]).T @ zf).ravel()
-            set_weight = np.bincount(which, weights=w, minlength=len(sets))
+            set_weight = np.bincount(which, weights=w, minlength=W_sets.shape[0])
             total[_W] = set_weight @ W_sets
             total[_SS : _SS + 4 : 2] = w @ ss
             total[_SS + 1 : _SS + 4 : 2] = set_weight @ dof_sets
-            wp = w[pr]
+            # rows without a lag pair weigh zero (cheaper than gathering the paired rows)
+            wp = w * paired
             total[_LAG] = wp.sum()
-            total[_LAG + 1 : _LAG + 13] = wp @ (z[pr] + z_prev[pr]).reshape(pr.size, 12)
-            cross = (z[pr] * wp[:, None, None]).reshape(-1, 4).T @ z_prev[pr].reshape(-1, 4)
+            total[_LAG + 1 : _LAG + 13] = wp @ (z + z_prev).reshape(m, 12)
+            cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
             total[_LAG + 13 :] = cross.ravel()
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
+            pr = np.flatnonzero(paired)
             c = np.empty((m, _N_SUMS))
             c[:, 0] = 1.0
             c[:, _Z] = zf
@@ -1469,6 +1526,7 @@ class OnlineJoint:
                 self._parent.visible_set(~missing[0, :pa]),
                 self._child.visible_set(~missing[1, :pc]),
                 max(pa, pc),
+                len(self._pairs),
             )
             self._pairs[key] = ps
         return ps
@@ -1509,15 +1567,6 @@ class OnlineJoint:
             ok[1] and held[1] < GATE_RELOCK_FRAMES and frame_no - at[1] <= GATE_TURN_GAP_FRAMES,
         )
 
-    def _turns(self, R: FloatArray, frame_no: int) -> bool:
-        """Whether a segment of poses ``R`` (2, 3, 3) may fail the turn test now (with the batch margin)."""
-        active = self._turn_active(frame_no)
-        if not (active[0] or active[1]):
-            return False
-        cos = _cos_turn(R, self._R_ref)
-        margin = _COS_MAX_TURN + _COS_MARGIN
-        return (active[0] and bool(cos[0] < margin)) or (active[1] and bool(cos[1] < margin))
-
     def _set_references(self, R: FloatArray, d: FloatArray, frame_no: int) -> None:
         """Both segments passed the gate in frame ``frame_no`` with poses ``R`` (2, 3, 3), ``d`` (2, 3)."""
         self._R_ref[...] = R
@@ -1525,6 +1574,20 @@ class OnlineJoint:
         self._ref_ok = [True, True]
         self._ref_frame = [frame_no, frame_no]
         self._held = [0, 0]
+
+    def _turns_segment(self, k: int, R: FloatArray, frame_no: int) -> bool:
+        """Whether segment ``k`` of pose ``R`` (3, 3) may fail the turn test now (with the batch margin)."""
+        if not self._turn_active(frame_no)[k]:
+            return False
+        return bool(_cos_turn(R, self._R_ref[k]) < _COS_MAX_TURN + _COS_MARGIN)
+
+    def _set_reference(self, k: int, R: FloatArray, d: FloatArray, frame_no: int) -> None:
+        """Segment ``k`` passed the gate in frame ``frame_no`` with pose ``R`` (3, 3), ``d`` (3,)."""
+        self._R_ref[k] = R
+        self._d_ref[k] = d
+        self._ref_ok[k] = True
+        self._ref_frame[k] = frame_no
+        self._held[k] = 0
 
     def _relabelling(self, k: int, vs: _VisibleSet) -> NDArray[np.intp] | None:
         """Segment ``k``'s visible markers in ``self._Y`` as its reference's markers relabelled, or None.
@@ -1673,11 +1736,7 @@ class OnlineJoint:
                 self._set_references(R, d, frame_no)
             else:
                 k = 0 if ps.parent is not None else 1
-                self._R_ref[k] = R[k]
-                self._d_ref[k] = d[k]
-                self._ref_ok[k] = True
-                self._ref_frame[k] = frame_no
-                self._held[k] = 0
+                self._set_reference(k, R[k], d[k], frame_no)
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view

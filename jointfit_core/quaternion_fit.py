@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["largest_eigenpair"]
+__all__ = ["largest_eigenpair", "largest_eigenpair_entries"]
 
 #: Newton stops for a row when a step changes the eigenvalue by less than this times the bound.
 NEWTON_RTOL = 1e-15
@@ -75,25 +75,50 @@ def determinant(A: FloatArray) -> FloatArray:
 
 def adjugate(A: FloatArray) -> FloatArray:
     """The adjugate of 4 x 4 matrices ``A`` (..., 4, 4): ``adj(A) = det(A) inv(A)``, shape (..., 4, 4)."""
-    a = _entries(A)
+    return np.moveaxis(_adjugate_entries(_entries(A)), (0, 1), (-2, -1))
+
+
+def _adjugate_entries(a: list[list[FloatArray]]) -> FloatArray:
+    """The adjugate of a 4 x 4 matrix given by its entries (arrays of shape (...)), entries first: (4, 4, ...).
+
+    Each entry is written as one contiguous array (the matrices-last layout of ``adjugate``'s
+    result would scatter every write).
+    """
     s, c = _minors(a)
-    adj = np.empty(A.shape)
-    adj[..., 0, 0] = a[1][1] * c[5] - a[1][2] * c[4] + a[1][3] * c[3]
-    adj[..., 0, 1] = -a[0][1] * c[5] + a[0][2] * c[4] - a[0][3] * c[3]
-    adj[..., 0, 2] = a[3][1] * s[5] - a[3][2] * s[4] + a[3][3] * s[3]
-    adj[..., 0, 3] = -a[2][1] * s[5] + a[2][2] * s[4] - a[2][3] * s[3]
-    adj[..., 1, 0] = -a[1][0] * c[5] + a[1][2] * c[2] - a[1][3] * c[1]
-    adj[..., 1, 1] = a[0][0] * c[5] - a[0][2] * c[2] + a[0][3] * c[1]
-    adj[..., 1, 2] = -a[3][0] * s[5] + a[3][2] * s[2] - a[3][3] * s[1]
-    adj[..., 1, 3] = a[2][0] * s[5] - a[2][2] * s[2] + a[2][3] * s[1]
-    adj[..., 2, 0] = a[1][0] * c[4] - a[1][1] * c[2] + a[1][3] * c[0]
-    adj[..., 2, 1] = -a[0][0] * c[4] + a[0][1] * c[2] - a[0][3] * c[0]
-    adj[..., 2, 2] = a[3][0] * s[4] - a[3][1] * s[2] + a[3][3] * s[0]
-    adj[..., 2, 3] = -a[2][0] * s[4] + a[2][1] * s[2] - a[2][3] * s[0]
-    adj[..., 3, 0] = -a[1][0] * c[3] + a[1][1] * c[1] - a[1][2] * c[0]
-    adj[..., 3, 1] = a[0][0] * c[3] - a[0][1] * c[1] + a[0][2] * c[0]
-    adj[..., 3, 2] = -a[3][0] * s[3] + a[3][1] * s[1] - a[3][2] * s[0]
-    adj[..., 3, 3] = a[2][0] * s[3] - a[2][1] * s[1] + a[2][2] * s[0]
+    adj = np.empty((4, 4, *a[0][0].shape))
+    adj[0, 0] = a[1][1] * c[5] - a[1][2] * c[4] + a[1][3] * c[3]
+    adj[0, 1] = -a[0][1] * c[5] + a[0][2] * c[4] - a[0][3] * c[3]
+    adj[0, 2] = a[3][1] * s[5] - a[3][2] * s[4] + a[3][3] * s[3]
+    adj[0, 3] = -a[2][1] * s[5] + a[2][2] * s[4] - a[2][3] * s[3]
+    adj[1, 0] = -a[1][0] * c[5] + a[1][2] * c[2] - a[1][3] * c[1]
+    adj[1, 1] = a[0][0] * c[5] - a[0][2] * c[2] + a[0][3] * c[1]
+    adj[1, 2] = -a[3][0] * s[5] + a[3][2] * s[2] - a[3][3] * s[1]
+    adj[1, 3] = a[2][0] * s[5] - a[2][2] * s[2] + a[2][3] * s[1]
+    adj[2, 0] = a[1][0] * c[4] - a[1][1] * c[2] + a[1][3] * c[0]
+    adj[2, 1] = -a[0][0] * c[4] + a[0][1] * c[2] - a[0][3] * c[0]
+    adj[2, 2] = a[3][0] * s[4] - a[3][1] * s[2] + a[3][3] * s[0]
+    adj[2, 3] = -a[2][0] * s[4] + a[2][1] * s[2] - a[2][3] * s[0]
+    adj[3, 0] = -a[1][0] * c[3] + a[1][1] * c[1] - a[1][2] * c[0]
+    adj[3, 1] = a[0][0] * c[3] - a[0][1] * c[1] + a[0][2] * c[0]
+    adj[3, 2] = -a[3][0] * s[3] + a[3][1] * s[1] - a[3][2] * s[0]
+    adj[3, 3] = a[2][0] * s[3] - a[2][1] * s[1] + a[2][2] * s[0]
+    return adj
+
+
+def _adjugate_symmetric_entries(a: list[list[FloatArray]]) -> FloatArray:
+    """:func:`_adjugate_entries` of a symmetric matrix: the upper triangle, mirrored (10 entries instead of 16)."""
+    s, c = _minors(a)
+    adj = np.empty((4, 4, *a[0][0].shape))
+    adj[0, 0] = a[1][1] * c[5] - a[1][2] * c[4] + a[1][3] * c[3]
+    adj[0, 1] = adj[1, 0] = -a[0][1] * c[5] + a[0][2] * c[4] - a[0][3] * c[3]
+    adj[0, 2] = adj[2, 0] = a[3][1] * s[5] - a[3][2] * s[4] + a[3][3] * s[3]
+    adj[0, 3] = adj[3, 0] = -a[2][1] * s[5] + a[2][2] * s[4] - a[2][3] * s[3]
+    adj[1, 1] = a[0][0] * c[5] - a[0][2] * c[2] + a[0][3] * c[1]
+    adj[1, 2] = adj[2, 1] = -a[3][0] * s[5] + a[3][2] * s[2] - a[3][3] * s[1]
+    adj[1, 3] = adj[3, 1] = a[2][0] * s[5] - a[2][2] * s[2] + a[2][3] * s[1]
+    adj[2, 2] = a[3][0] * s[4] - a[3][1] * s[2] + a[3][3] * s[0]
+    adj[2, 3] = adj[3, 2] = -a[2][0] * s[4] + a[2][1] * s[2] - a[2][3] * s[0]
+    adj[3, 3] = a[2][0] * s[3] - a[2][1] * s[1] + a[2][2] * s[0]
     return adj
 
 
@@ -127,12 +152,24 @@ def largest_eigenpair(N: FloatArray, S: FloatArray, bound: FloatArray) -> tuple[
     ulp of ``bound`` in the eigenvalue (tested).
     """
     shape = N.shape[:-2]
-    N = N.reshape(-1, 4, 4)
+    Nt = np.ascontiguousarray(np.moveaxis(N.reshape(-1, 4, 4), (1, 2), (0, 1)))
+    lam, qt = largest_eigenpair_entries(Nt, S, bound)
+    return lam.reshape(shape), np.ascontiguousarray(qt.T).reshape(*shape, 4)
+
+
+def largest_eigenpair_entries(Nt: FloatArray, S: FloatArray, bound: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """:func:`largest_eigenpair` of M matrices given entries first: ``Nt`` (4, 4, M); returns ``lam`` (M,), ``q`` (4, M).
+
+    The layout its elementwise steps work in (each entry one contiguous array); a caller that
+    builds ``N`` as ``A @ vec(S)`` gets it from one matrix product.
+    """
     S = S.reshape(-1, 3, 3)
     bound = np.asarray(bound, dtype=np.float64).reshape(-1)
+    a = [[Nt[i, j] for j in range(4)] for i in range(4)]
     c2 = -2.0 * np.einsum("mij,mij->m", S, S)
     c1 = -8.0 * _det3(S)
-    c0 = determinant(N)
+    s, c = _minors(a)
+    c0 = s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]
     lam = bound.copy()
     active = lam > 0.0
     tol = NEWTON_RTOL * lam
@@ -146,38 +183,41 @@ def largest_eigenpair(N: FloatArray, S: FloatArray, bound: FloatArray) -> tuple[
             step = np.where(active & (dp > 0.0), p / dp, 0.0)
         lam = np.where(active, lam - step, lam)
         active &= np.abs(step) > tol
-    q, bad = _eigenvector(N, lam, bound)
+    q, bad = _eigenvector(Nt, lam, bound)
     bad |= active
     # The polynomial's root is only as good as its conditioning (close eigenvalues, e.g. three
     # markers); the Rayleigh quotient of its eigenvector is good to O(error^2). Where it moves
     # the eigenvalue by more than rounding, the eigenvector is taken again from it.
-    rayleigh = np.einsum("mi,mij,mj->m", q, N, q)
+    rayleigh = np.einsum("im,ijm,jm->m", q, Nt, q)
     redo = np.flatnonzero(~bad & (np.abs(rayleigh - lam) > REFINE_RTOL * bound))
     lam = np.where(bad, lam, rayleigh)
     if redo.size:
-        q_redo, bad_redo = _eigenvector(N[redo], lam[redo], bound[redo])
-        q[redo] = q_redo
+        q_redo, bad_redo = _eigenvector(Nt[:, :, redo], lam[redo], bound[redo])
+        q[:, redo] = q_redo
         bad[redo] |= bad_redo
     if bad.any():
-        w, v = np.linalg.eigh(N[bad])
+        w, v = np.linalg.eigh(np.moveaxis(Nt[:, :, bad], 2, 0))
         lam[bad] = w[:, 3]
-        q[bad] = v[:, :, 3]
-    return lam.reshape(shape), q.reshape(*shape, 4)
+        q[:, bad] = v[:, :, 3].T
+    return lam, q
 
 
-def _eigenvector(N: FloatArray, lam: FloatArray, bound: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Unit eigenvectors (M, 4) of ``N`` (M, 4, 4) for eigenvalues ``lam`` (M,) from the adjugate of ``N - lam I``.
+def _eigenvector(Nt: FloatArray, lam: FloatArray, bound: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Unit eigenvectors (4, M) of ``Nt`` (4, 4, M) for eigenvalues ``lam`` (M,) from the adjugate of ``N - lam I``.
 
     Also returns the rows where the adjugate vanishes (the eigenvalue is not simple to working
     precision, or ``lam`` is not one): their vectors are meaningless.
     """
-    adj = adjugate(N - lam[:, None, None] * np.eye(4))
-    diag = np.abs(np.diagonal(adj, axis1=1, axis2=2))
-    j = np.argmax(diag, axis=1)
-    rows = np.arange(j.size)
-    col = adj[rows, :, j]
-    norm = np.sqrt(np.einsum("mi,mi->m", col, col))
-    bad = ~(diag[rows, j] > ADJUGATE_RTOL * bound**3)
+    a = [[Nt[i, j] - lam if i == j else Nt[i, j] for j in range(4)] for i in range(4)]
+    adj = _adjugate_symmetric_entries(a)
+    diag = np.abs(adj[_DIAGONAL, _DIAGONAL])  # (4, M)
+    j = np.argmax(diag, axis=0)
+    col = np.take_along_axis(adj, j[None, None, :], axis=1)[:, 0]  # (4, M): column j of each
+    norm = np.sqrt(np.einsum("im,im->m", col, col))
+    bad = ~(np.take_along_axis(diag, j[None, :], axis=0)[0] > ADJUGATE_RTOL * bound**3)
     with np.errstate(divide="ignore", invalid="ignore"):
-        q = col / norm[:, None]
+        q = col / norm
     return q, bad
+
+
+_DIAGONAL = np.arange(4)

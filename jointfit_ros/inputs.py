@@ -319,9 +319,9 @@ class MessageRouter:
             for topic, raw in messages:
                 out.extend(self.markers(raw) if topic is None else self.pose(topic, raw))
             return out
-        at = [i for i, (topic, _) in enumerate(messages) if topic is None]
-        self.counters["messages"] += len(at)
-        index, stamps, frame_ids, frames, problems = self._parse_markers([messages[i][1] for i in at])
+        raws = [raw for topic, raw in messages if topic is None]
+        self.counters["messages"] += len(raws)
+        index, stamps, frame_ids, frames, problems = self._parse_markers(raws)
         if index.size:
             if self.recorded is not None:
                 self.recorded.extend(zip(stamps.tolist(), frames, strict=True))
@@ -330,7 +330,7 @@ class MessageRouter:
                     runner.markers_block(stamps, frames)
         paired = [r for r in self.marker_runners if r.matcher is not None]
         out = []
-        if not paired and len(at) == len(messages):
+        if not paired and len(raws) == len(messages):
             for problem in problems:
                 self._problem(*problem[1:])
             if index.size:

@@ -252,9 +252,10 @@ def _bag_events(run: FitRun, topics: list[str], step: int) -> Iterator[int]:
     traces = {id(t.runner): t for t in run.traces}
     pending: list[tuple[str | None, bytes]] = []
     done = 0
+    limit = min(MAX_BLOCK, step)  # the block's length: to the next multiple of step, at most MAX_BLOCK
     for msg in iter_bag_messages(run.path, topics):
         pending.append((None if msg.topic == marker_topic else msg.topic, msg.raw))
-        if (done + len(pending)) % step == 0 or len(pending) >= MAX_BLOCK:
+        if len(pending) >= limit:
             for r in router.route_many(pending):
                 t = traces[id(r.runner)]
                 t.output_stamps.append(r.stamp_ns * 1e-9)
@@ -262,6 +263,7 @@ def _bag_events(run: FitRun, topics: list[str], step: int) -> Iterator[int]:
             done += len(pending)
             yield len(pending)
             pending = []
+            limit = min(MAX_BLOCK, step - done % step)
     if pending:
         for r in router.route_many(pending):
             t = traces[id(r.runner)]

@@ -270,6 +270,29 @@ def test_block_path_turn_test_exactly_as_the_frame_path() -> None:
     assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
 
 
+def test_block_path_one_segment_posed_gates_as_the_frame_path() -> None:
+    """Swaps and turns while the other segment is occluded (one segment posed): update_many gates as update does.
+
+    Those frames pass the gate in bulk and move one segment's turn reference; the swaps among them
+    must still be held out one by one, with the references as the frame path has them.
+    """
+    parent, child, _ = _symmetric_rig(11, 2400)
+    rng = np.random.default_rng(12)
+    for k in range(250, 2000, 50):
+        n = int(rng.integers(1, 25))
+        child[k : k + n, [0, 2]] = child[k : k + n, [2, 0]]
+        # the parent occluded over part of the swap, and for a few frames of its own
+        lo = k + int(rng.integers(-5, n))
+        parent[lo : lo + int(rng.integers(1, 15)), :2] = np.nan
+        child[k + n + 5 : k + n + 5 + int(rng.integers(1, 8)), 1:3] = np.nan
+    parent[rng.random(parent.shape[:2]) < 0.05] = np.nan
+    child[rng.random(child.shape[:2]) < 0.03] = np.nan
+    one, many = _frames_and_blocks(parent, child, 900, 130)
+    assert one.dropped == many.dropped
+    assert one.dropped.get("child_gated", 0) > 100 and one.dropped.get("parent_not_posed", 0) > 200, one.dropped
+    assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
+
+
 def test_a_segment_that_jumps_is_not_held_out() -> None:
     """A turn that is not a relabelling (the whole subject moved at once, a recording restarting): no swap.
 
