@@ -13,8 +13,8 @@ a deep history, so a message is lost only if the node cannot keep up). Label swa
 second, two markers of one cluster exchange their places for 0.05-0.5 s. The node is
 ``python -m jointfit_ros.node`` with ``config/fake_mocap.yaml`` (window 3000 frames).
 
-Measured: the node's resident memory (``VmRSS`` from ``/proc``) every ``--sample-s`` seconds of wall
-time; frames published and distinct input stamps received on ``/hip/centre`` and ``/knee/axis``
+Measured: the resident memory (``VmRSS`` from ``/proc``) of the node and its solver worker process
+every ``--sample-s`` seconds of wall time; frames published and distinct input stamps received on ``/hip/centre`` and ``/knee/axis``
 (drops = the difference); at the end the error of the node's last 500 hip outputs against the
 true centre (rms, next to the reported sd: sqrt(trace cov)) and of the knee axis direction.
 """
@@ -48,14 +48,18 @@ T0_NS = 1_800_000_000_000_000_000
 
 
 def _rss_mb(pid: int) -> float:
+    """Resident memory of process ``pid`` and its children (the node and its solver worker), MB."""
+    total = 0.0
     try:
         with open(f"/proc/{pid}/status", encoding="ascii") as fh:
             for line in fh:
                 if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
+                    total = int(line.split()[1]) / 1024.0
+        with open(f"/proc/{pid}/task/{pid}/children", encoding="ascii") as fh:
+            children = [int(c) for c in fh.read().split()]
     except OSError:
-        pass
-    return float("nan")
+        return total if total else float("nan")
+    return total + sum(_rss_mb(c) for c in children)
 
 
 def _params(tmp: Path) -> Path:
@@ -202,7 +206,7 @@ def run(minutes: float, speed: float, sample_s: float, seed: int, swaps: bool) -
         knee_deg.append(np.degrees(np.arccos(min(1.0, abs(float(axis @ true_axis))))))
 
     mem_rows = [[f"{t / 60:.1f}", f"{mb:.1f}"] for t, mb in memory]
-    mem_table = markdown_table(["recording time (min)", "node RSS (MB)"], mem_rows)
+    mem_table = markdown_table(["recording time (min)", "node + worker RSS (MB)"], mem_rows)
     drops = {name: sent - received.get(name, 0) for name in got}
     no_output = {name: received.get(name, 0) - len(stamps) for name, stamps in got.items()}
     first_10 = [mb for t, mb in memory if t >= 0.1 * seconds]
@@ -212,7 +216,7 @@ def run(minutes: float, speed: float, sample_s: float, seed: int, swaps: bool) -
         [
             ["recording", f"{minutes:g} min at {RATE:g} Hz = {sent} frames, {stream.swaps} label swaps"],
             ["wall time", f"{wall / 60:.1f} min (x{speed:g} requested, x{seconds / wall:.2f} achieved)"],
-            ["node RSS start / end (MB)", f"{memory[0][1]:.1f} / {memory[-1][1]:.1f}"],
+            ["node + solver worker RSS start / end (MB)", f"{memory[0][1]:.1f} / {memory[-1][1]:.1f}"],
             ["RSS growth after the first 10 % (MB)", f"{growth:+.1f}"],
             ["frames not received by the node: hip / knee", f"{drops['hip']} / {drops['knee']}"],
             [
