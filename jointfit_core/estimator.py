@@ -573,6 +573,10 @@ def _serial_from_dict(data: Any) -> SerialInflation:
 
 # --------------------------------------------------------------------------- solving a window
 
+#: Estimator states whose solve results may be installed, numbered across all estimators of the process
+#: (a runner replaces its estimator on reset: an answer for the old one must not fit the new one).
+_GENERATIONS = itertools.count(1)
+
 
 def _unpack_pose_sums(s: FloatArray) -> tuple[PoseSums, FloatArray, FloatArray, float, float]:
     """:meth:`OnlineJoint.pose_sums` of a sums vector (the estimator's layout, at least one frame)."""
@@ -912,7 +916,7 @@ class OnlineJoint:
         # convention) starts a new generation, whose solve results alone may be installed.
         self._version = 0
         self._solved_version = 0
-        self._generation = getattr(self, "_generation", 0) + 1
+        self._generation = next(_GENERATIONS)
         self._frozen = False
         self._last_stamp: float | None = None
         self.dropped: dict[str, int] = {}
@@ -1015,7 +1019,7 @@ class OnlineJoint:
         """Set the hinge sign convention (a direction in the parent local frame); the next estimate follows it."""
         self.reference_direction = check_vector3(direction, name="reference_direction", unit=True)
         self._version += 1
-        self._generation += 1  # a solve under way has the old convention
+        self._generation = next(_GENERATIONS)  # a solve under way has the old convention
 
     def _make_segments(self, n_parent: int, n_child: int) -> None:
         self.n_markers = (n_parent, n_child)

@@ -10,6 +10,7 @@ import pytest
 from numpy.typing import NDArray
 
 from jointfit_core.errors import InputError
+from jointfit_core.estimator import solve_window
 from jointfit_core.synthetic import two_segment_motion
 from jointfit_ros.params import JOINT_PARAMS, NODE_PARAMS, ConfigError, check_value, node_config
 from jointfit_ros.runner import OK, STALE, WARN, JointRunner
@@ -154,6 +155,26 @@ def test_runner_estimates_reports_and_saves(tmp_path: Any) -> None:
     again.reset()
     assert not again.estimator.frozen and again.estimator.solution is None
 
+
+
+def test_runner_drops_an_answer_for_the_estimator_it_replaced() -> None:
+    """reset() gives the runner a new estimator: a solve sent before it must not land in the new one."""
+    cfg = node_config(_values(**{"hip.window": 800, "hip.template_frames": 20}))
+    runner = JointRunner(cfg.joints[0], cfg)
+    frames, times, _ = _stream("ball", 600, seed=4)
+    for k in range(frames.shape[0]):
+        runner.markers_frame(int(times[k] * 1e9), frames[k])
+    request = runner.solve_request(force=True)
+    assert request is not None
+    answer = solve_window(request)
+    runner.reset()
+    for k in range(30):  # the new estimator's first frames
+        runner.markers_frame(int((times[-1] + 1 + k / 100) * 1e9), frames[k])
+    assert not runner.install(answer) and runner.estimator.solution is None
+    before = JointRunner(cfg.joints[0], cfg)  # and without the reset it would have been installed
+    for k in range(frames.shape[0]):
+        before.markers_frame(int(times[k] * 1e9), frames[k])
+    assert before.install(solve_window(before.solve_request(force=True)))  # type: ignore[arg-type]
 
 def test_runner_survives_bad_frames_and_bad_files(tmp_path: Any) -> None:
     broken = tmp_path / "broken.yaml"
