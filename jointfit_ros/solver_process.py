@@ -107,9 +107,13 @@ class SolverProcess:
         return answers
 
     def _fail(self, why: str) -> None:
+        """Give the worker up: it is gone or hung, so it is killed at once (no wait on the frames' thread)."""
         self.problem = why
         self._key = None
-        self.close()
+        self._conn.close()
+        if self._proc.poll() is None:
+            self._proc.kill()
+        self._proc.wait()
 
     def close(self, timeout: float = 2.0) -> None:
         """Stop the worker (closing its socket ends it; killed after ``timeout`` seconds)."""

@@ -245,3 +245,20 @@ def test_node_falls_back_when_the_worker_dies() -> None:
     reference, _ = _node_estimates(False)
     for name in ("hip", "knee"):
         _assert_identical(solutions[name], reference[name])
+
+
+def test_a_hung_worker_is_given_up(solver: SolverProcess, monkeypatch: pytest.MonkeyPatch) -> None:
+    import signal
+
+    import jointfit_ros.solver_process as sp_module
+
+    est, _, _ = _joint("ball")
+    request = est.solve_request()
+    assert request is not None
+    monkeypatch.setattr(sp_module, "SOLVE_TIMEOUT_S", 0.2)
+    solver._proc.send_signal(signal.SIGSTOP)  # alive, never answering
+    assert solver.submit("hip", request)
+    time.sleep(0.3)
+    assert solver.collect() == []
+    assert not solver.alive and "no answer" in solver.problem
+    assert solver._proc.poll() is not None  # killed, not left stopped
