@@ -42,8 +42,8 @@ then for each rate a ``PAUSE_S`` pause without frames (queues drain) and ``SECON
 (the same wall clock on this host): p50, p99 and max over the frames of the timed phase, first
 receipt of each stamp. **Drops** = frames sent in the phase minus distinct input stamps that
 reached the output (per output topic for the node). **CPU** of the system under test =
-(utime + stime) / wall time during the phase from ``/proc/PID/stat`` (100 % = one core; divided
-by the rate, the CPU time per frame);
+(utime + stime) / wall time during the phase from ``/proc/PID/stat``, the node's solver worker
+process included (100 % = one core; divided by the rate, the CPU time per frame);
 **machine busy** = non-idle time of all cores from ``/proc/stat`` (100 % = all cores) and
 **others** = the part of it not used by the three benchmark processes (the load that is not
 ours, e.g. other jobs on a shared VM). Target: 1000 Hz sustained without drops and node p99
@@ -106,13 +106,19 @@ _CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
 def _proc_seconds(pid: int) -> float:
-    """CPU time (user + system, s) of process ``pid`` so far; NaN when it is gone."""
+    """CPU time (user + system, s) of process ``pid`` and its live children (the node's solver worker); NaN when gone."""
     try:
         with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
             fields = fh.read().rsplit(")", 1)[1].split()
     except OSError:
         return float("nan")
-    return (int(fields[11]) + int(fields[12])) / _CLK_TCK
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children", encoding="ascii") as fh:
+            children = [int(c) for c in fh.read().split()]
+    except OSError:
+        children = []
+    own = (int(fields[11]) + int(fields[12])) / _CLK_TCK
+    return own + sum(t for t in (_proc_seconds(c) for c in children) if t == t)
 
 
 def _machine_seconds() -> tuple[float, float]:
@@ -612,7 +618,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         "## Every output",
         "",
-        "SUT CPU: the relay's or the node's process (100 % = one core); machine busy: all "
+        "SUT CPU: the relay's process, or the node's with its solver worker (100 % = one core); machine busy: all "
         f"{os.cpu_count()} cores; others: busy time not used by the benchmark's processes.",
         "",
         detail_table(samples),
