@@ -21,8 +21,8 @@ load during the run falls on both; the summary pools the rounds and shows the ra
   to the markers and republishing the same bytes, spun like the jointfit node
   (``EventsExecutor.spin_once(timeout_sec=0.1)`` in a loop, same input QoS). Two hops.
 * **node**: ``python -m jointfit_ros.node`` with ``config/fake_mocap.yaml`` extended by the 24
-  extra marker names (hip ball, knee hinge, window 3000, estimate every 0.1 s, local outputs at
-  10 Hz and RViz markers at 5 Hz as configured). Its per-frame outputs ``/hip/centre`` and
+  extra marker names (hip ball, knee hinge, window 3000, estimate every 0.1 s in its solver worker
+  process, local outputs at 10 Hz and RViz markers at 5 Hz as configured). Its per-frame outputs ``/hip/centre`` and
   ``/knee/axis`` carry the input stamp. Two hops plus the node's work.
 
 Processes: the publisher, the system under test and the measuring process are three separate
