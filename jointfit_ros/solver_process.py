@@ -90,6 +90,15 @@ class SolverProcess:
         self._key, self._since = key, time.monotonic()
         return True
 
+    def ready(self, timeout: float = 0.0) -> bool:
+        """Whether :meth:`collect` has an answer (or the worker's end) to report; waits up to ``timeout`` s."""
+        if not self.alive or self._key is None:
+            return False
+        try:
+            return self._conn.poll(timeout)
+        except OSError:
+            return True  # collect() finds out what happened
+
     def collect(self) -> list[tuple[str, SolveResult | JointfitError]]:
         """Answers that have arrived (without waiting): ``(key, result or the error the solve raised)``."""
         answers: list[tuple[str, SolveResult | JointfitError]] = []

@@ -210,15 +210,14 @@ def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> 
                     node._solver._proc.kill()
                     node._solver._proc.wait()
                 if k % 20 == 19:
-                    for _ in range(200):  # wait for the worker's answer (its start takes a second)
-                        if node._solver is None or node._solver.idle or not node._solver.alive:
-                            break
-                        time.sleep(0.01)
+                    if node._solver is not None:
+                        node._solver.ready(30.0)  # the worker's answer (its start takes a second or two)
                     node._on_estimate_timer()
                     solved_in.append("worker" if node._solver is not None else "thread")
             # bring every joint up to the last frame
             for _ in range(8):
-                time.sleep(0.05)
+                if node._solver is not None:
+                    node._solver.ready(30.0)
                 node._on_estimate_timer()
             return {name: r.estimator.solution for name, r in node.runners.items()}, solved_in
         finally:
