@@ -1571,14 +1571,6 @@ class OnlineJoint:
             ok[1] and held[1] < GATE_RELOCK_FRAMES and frame_no - at[1] <= GATE_TURN_GAP_FRAMES,
         )
 
-    def _set_references(self, R: FloatArray, d: FloatArray, frame_no: int) -> None:
-        """Both segments passed the gate in frame ``frame_no`` with poses ``R`` (2, 3, 3), ``d`` (2, 3)."""
-        self._R_ref[...] = R
-        self._d_ref[...] = d
-        self._ref_ok = [True, True]
-        self._ref_frame = [frame_no, frame_no]
-        self._held = [0, 0]
-
     def _turns_segment(self, k: int, R: FloatArray, frame_no: int) -> bool:
         """Whether segment ``k`` of pose ``R`` (3, 3) may fail the turn test now (with the batch margin)."""
         if not self._turn_active(frame_no)[k]:
@@ -1736,11 +1728,9 @@ class OnlineJoint:
                     if self._ref_frame[k] != frame_no:
                         self._follow(k, y, vs, lab, frame_no)
                 return out
-            if ps.parent is not None and ps.child is not None:
-                self._set_references(R, d, frame_no)
-            else:
-                k = 0 if ps.parent is not None else 1
-                self._set_reference(k, R[k], d[k], frame_no)
+            for k, vs in enumerate((ps.parent, ps.child)):
+                if vs is not None:
+                    self._set_reference(k, R[k], d[k], frame_no)
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view
