@@ -27,7 +27,7 @@ from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
-from .quaternion_fit import largest_eigenpair_entries
+from .quaternion_fit import HORN_A, HORN_B, rotations_from_correlations
 from .segments import (
     AXIS_SD_MAX_DEG,
     POSE_VAR_RATIO_MAX,
@@ -174,52 +174,6 @@ def _cos_turn(R: FloatArray, Q: FloatArray) -> FloatArray:
     return (np.einsum("...ij,...ij->...", R, Q) - 1.0) / 2.0
 
 
-def _horn_matrices() -> tuple[FloatArray, FloatArray]:
-    """Fixed linear maps of Horn's method: ``N = A @ vec(S)`` (16, 9) and ``vec(R) = B @ vec(q q^T)`` (9, 16).
-
-    ``S = sum x y^T`` of centred template points ``x`` and measured points ``y``; the rotation
-    ``R`` maximising ``sum y . R x`` comes from the unit quaternion ``q = (w, x, y, z)`` of the
-    largest eigenvalue of the symmetric ``N`` (Horn 1987), and that eigenvalue is ``tr(R S)``.
-    """
-    A = np.zeros((4, 4, 3, 3))
-    xx, xy, xz, yx, yy, yz, zx, zy, zz = ((i, j) for i in range(3) for j in range(3))
-    entries = {
-        (0, 0): [(xx, 1), (yy, 1), (zz, 1)],
-        (0, 1): [(yz, 1), (zy, -1)],
-        (0, 2): [(zx, 1), (xz, -1)],
-        (0, 3): [(xy, 1), (yx, -1)],
-        (1, 1): [(xx, 1), (yy, -1), (zz, -1)],
-        (1, 2): [(xy, 1), (yx, 1)],
-        (1, 3): [(zx, 1), (xz, 1)],
-        (2, 2): [(xx, -1), (yy, 1), (zz, -1)],
-        (2, 3): [(yz, 1), (zy, 1)],
-        (3, 3): [(xx, -1), (yy, -1), (zz, 1)],
-    }
-    for (r, c), terms in entries.items():
-        for (i, j), sign in terms:
-            A[r, c, i, j] += sign
-            if r != c:
-                A[c, r, i, j] += sign
-    B = np.zeros((3, 3, 4, 4))
-    w, x, y, z = range(4)
-    rot = {
-        (0, 0): [((w, w), 1), ((x, x), 1), ((y, y), -1), ((z, z), -1)],
-        (0, 1): [((x, y), 2), ((w, z), -2)],
-        (0, 2): [((x, z), 2), ((w, y), 2)],
-        (1, 0): [((x, y), 2), ((w, z), 2)],
-        (1, 1): [((w, w), 1), ((x, x), -1), ((y, y), 1), ((z, z), -1)],
-        (1, 2): [((y, z), 2), ((w, x), -2)],
-        (2, 0): [((x, z), 2), ((w, y), -2)],
-        (2, 1): [((y, z), 2), ((w, x), 2)],
-        (2, 2): [((w, w), 1), ((x, x), -1), ((y, y), -1), ((z, z), 1)],
-    }
-    for (r, c), terms in rot.items():
-        for (i, j), coef in terms:
-            B[r, c, i, j] += coef
-    return A.reshape(16, 9), B.reshape(9, 16)
-
-
-_HORN_A, _HORN_B = _horn_matrices()
 
 try:  # the gufunc behind np.linalg.eigh, without its Python-level checks (~3 us per call here)
     from numpy.linalg import _umath_linalg
@@ -300,10 +254,10 @@ def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatAr
     """
     ybar = (ps.wn[:, None, :] @ Y)[:, 0]
     S = ps.xc_t @ Y  # centred x: no need to centre y
-    N = (S.reshape(2, 9) @ _HORN_A.T).reshape(2, 4, 4)
+    N = (S.reshape(2, 9) @ HORN_A.T).reshape(2, 4, 4)
     lam, V = _eigh(N)
     q = V[:, :, 3]
-    R = ((q[:, :, None] * q[:, None, :]).reshape(2, 16) @ _HORN_B.T).reshape(2, 3, 3)
+    R = ((q[:, :, None] * q[:, None, :]).reshape(2, 16) @ HORN_B.T).reshape(2, 3, 3)
     d = ybar - (R @ ps.xbar[:, :, None])[:, :, 0]
     yy = (Y * Y).sum(axis=(1, 2)) - ps.n * (ybar * ybar).sum(axis=1)  # Y is zero where not visible
     ss = np.maximum(yy + ps.xx - 2.0 * lam[:, 3], 0.0)
@@ -339,15 +293,10 @@ def _poses_many(
     Only segments that can be posed belong here (an empty set has no largest
     eigenvalue to find).
     """
-    k = Y.shape[0]
     ybar = np.einsum("kp,kpi->ki", wn, Y)
     S = xc_t @ Y
-    # Horn's N and the rotations entries first, (16, K) and (9, K): one matrix product each, and
-    # the eigen-solve's elementwise steps on contiguous rows
-    Nt = (_HORN_A @ S.reshape(k, 9).T).reshape(4, 4, k)
     yy = np.einsum("kpi,kpi->k", Y, Y) - n * np.einsum("ki,ki->k", ybar, ybar)
-    lam, q = largest_eigenpair_entries(Nt, S, 0.5 * (yy + xx))
-    R = (_HORN_B @ (q[:, None, :] * q[None, :, :]).reshape(16, k)).T.reshape(k, 3, 3)
+    R, lam = rotations_from_correlations(S, 0.5 * (yy + xx))
     d = ybar - np.einsum("kij,kj->ki", R, xbar)
     ss = np.maximum(yy + xx - 2.0 * lam, 0.0)
     return R, d, ss

@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .checks import check_markers, valid_mask
 from .errors import InputError
+from .quaternion_fit import rotations_from_correlations
 
 __all__ = [
     "Poses",
@@ -165,27 +166,28 @@ def _non_collinear(scatter: FloatArray, n: FloatArray) -> BoolArray:
 
 
 def _fit_poses(y: FloatArray, vis: BoolArray, x: FloatArray) -> Poses:
-    """Batched Kabsch fit of template ``x`` (P, 3) to ``y`` (N, P, 3) on the ``vis`` markers (no checks)."""
+    """Batched least-squares fit of template ``x`` (P, 3) to ``y`` (N, P, 3) on the ``vis`` markers (no checks).
+
+    The rotation is Horn's (:func:`~jointfit_core.quaternion_fit.rotations_from_correlations`),
+    the same optimum as Kabsch's SVD with the reflection excluded.
+    """
     w = vis.astype(np.float64)
     n = w.sum(axis=1)
     xbar, xc, scat_x = _centred_scatter(x, w)
     ok = _non_collinear(scat_x, n)
-    ybar, yc, _ = _centred_scatter(y, w)
-    # Cross-covariance sum_i x_i y_i^T of the centred points; identity where unused keeps the SVD finite.
-    cross = np.einsum("npi,npj->nij", xc, yc)
-    cross[~ok] = np.eye(3)
-    U, _, Vt = np.linalg.svd(cross)
-    V = np.swapaxes(Vt, -1, -2)
-    sign = np.sign(np.linalg.det(V) * np.linalg.det(U))
-    sign = np.where(sign == 0.0, 1.0, sign)
-    V[:, :, 2] *= sign[:, None]
-    R = V @ np.swapaxes(U, -1, -2)
-    d = ybar - np.einsum("nij,nj->ni", R, xbar)
-    pred = np.einsum("nij,pj->npi", R, x) + d[:, None, :]
-    res = np.where(vis[..., None], y - pred, 0.0)
+    yz = np.where(vis[..., None], y, 0.0)
+    ybar = (w[:, None, :] @ yz)[:, 0] / np.where(n > 0, n, 1.0)[:, None]
+    # Correlation sum_i x_i y_i^T: x is centred (and zero where unused), so y needs no centring.
+    S = np.swapaxes(xc[ok], 1, 2) @ yz[ok]
+    yy = np.einsum("npi,npi->n", yz[ok], yz[ok]) - n[ok] * np.einsum("ni,ni->n", ybar[ok], ybar[ok])
+    xx = np.einsum("npi,npi->n", xc[ok], xc[ok])
+    R = np.full((y.shape[0], 3, 3), np.nan)
+    R[ok] = rotations_from_correlations(S, 0.5 * (xx + yy))[0]
+    d = ybar - (R @ xbar[:, :, None])[:, :, 0]
+    pred = R @ x.T + d[:, :, None]  # (N, 3, P)
+    res = np.where(vis[..., None], y - np.swapaxes(pred, 1, 2), 0.0)
     ss = np.einsum("npi,npi->n", res, res)
     rms = np.sqrt(ss / np.where(n > 0, n, 1.0))
-    R[~ok] = np.nan
     d[~ok] = np.nan
     rms[~ok] = np.nan
     return Poses(

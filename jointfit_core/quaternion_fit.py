@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["largest_eigenpair", "largest_eigenpair_entries"]
+__all__ = ["HORN_A", "HORN_B", "largest_eigenpair", "largest_eigenpair_entries", "rotations_from_correlations"]
 
 #: Newton stops for a row when a step changes the eigenvalue by less than this times the bound.
 NEWTON_RTOL = 1e-15
@@ -42,6 +42,55 @@ NEWTON_MAX_STEPS = 60
 REFINE_RTOL = 1e-14
 #: A row goes to ``eigh`` when the adjugate's largest diagonal entry is below this times bound^3.
 ADJUGATE_RTOL = 1e-10
+
+
+def _horn_matrices() -> tuple[FloatArray, FloatArray]:
+    """Fixed linear maps of Horn's method: ``N = A @ vec(S)`` (16, 9) and ``vec(R) = B @ vec(q q^T)`` (9, 16).
+
+    ``S = sum x y^T`` of centred template points ``x`` and measured points ``y``; the rotation
+    ``R`` maximising ``sum y . R x`` comes from the unit quaternion ``q = (w, x, y, z)`` of the
+    largest eigenvalue of the symmetric ``N`` (Horn 1987), and that eigenvalue is ``tr(R S)``.
+    """
+    A = np.zeros((4, 4, 3, 3))
+    xx, xy, xz, yx, yy, yz, zx, zy, zz = ((i, j) for i in range(3) for j in range(3))
+    entries = {
+        (0, 0): [(xx, 1), (yy, 1), (zz, 1)],
+        (0, 1): [(yz, 1), (zy, -1)],
+        (0, 2): [(zx, 1), (xz, -1)],
+        (0, 3): [(xy, 1), (yx, -1)],
+        (1, 1): [(xx, 1), (yy, -1), (zz, -1)],
+        (1, 2): [(xy, 1), (yx, 1)],
+        (1, 3): [(zx, 1), (xz, 1)],
+        (2, 2): [(xx, -1), (yy, 1), (zz, -1)],
+        (2, 3): [(yz, 1), (zy, 1)],
+        (3, 3): [(xx, -1), (yy, -1), (zz, 1)],
+    }
+    for (r, c), terms in entries.items():
+        for (i, j), sign in terms:
+            A[r, c, i, j] += sign
+            if r != c:
+                A[c, r, i, j] += sign
+    B = np.zeros((3, 3, 4, 4))
+    w, x, y, z = range(4)
+    rot = {
+        (0, 0): [((w, w), 1), ((x, x), 1), ((y, y), -1), ((z, z), -1)],
+        (0, 1): [((x, y), 2), ((w, z), -2)],
+        (0, 2): [((x, z), 2), ((w, y), 2)],
+        (1, 0): [((x, y), 2), ((w, z), 2)],
+        (1, 1): [((w, w), 1), ((x, x), -1), ((y, y), 1), ((z, z), -1)],
+        (1, 2): [((y, z), 2), ((w, x), -2)],
+        (2, 0): [((x, z), 2), ((w, y), -2)],
+        (2, 1): [((y, z), 2), ((w, x), 2)],
+        (2, 2): [((w, w), 1), ((x, x), -1), ((y, y), -1), ((z, z), 1)],
+    }
+    for (r, c), terms in rot.items():
+        for (i, j), coef in terms:
+            B[r, c, i, j] += coef
+    return A.reshape(16, 9), B.reshape(9, 16)
+
+
+#: Horn's maps: ``N = HORN_A @ vec(S)`` (16, 9) and ``vec(R) = HORN_B @ vec(q q^T)`` (9, 16).
+HORN_A, HORN_B = _horn_matrices()
 
 
 def _entries(A: FloatArray) -> list[list[FloatArray]]:
@@ -221,3 +270,29 @@ def _eigenvector(Nt: FloatArray, lam: FloatArray, bound: FloatArray) -> tuple[Fl
 
 
 _DIAGONAL = np.arange(4)
+
+
+def rotations_from_correlations(S: FloatArray, bound: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Least-squares rotations of M point-set pairs from their correlation matrices (Horn 1987).
+
+    Parameters
+    ----------
+    S : ndarray, shape (M, 3, 3)
+        ``sum_i x_c,i y_i^T`` of centred template points ``x_c`` and measured points ``y``
+        (length^2).
+    bound : ndarray, shape (M,)
+        ``(|x_c|^2 + |y_c|^2) / 2`` summed over the points (length^2).
+
+    Returns
+    -------
+    R : ndarray, shape (M, 3, 3)
+        The proper rotation maximising ``sum_i y_i . R x_c,i`` (never a reflection).
+    lam : ndarray, shape (M,)
+        ``tr(R S)``, the largest eigenvalue of Horn's matrix: the residual sum of
+        squares is ``|x_c|^2 + |y_c|^2 - 2 lam``.
+    """
+    m = S.shape[0]
+    Nt = (HORN_A @ S.reshape(m, 9).T).reshape(4, 4, m)
+    lam, q = largest_eigenpair_entries(Nt, S, bound)
+    R = (HORN_B @ (q[:, None, :] * q[None, :, :]).reshape(16, m)).T.reshape(m, 3, 3)
+    return R, lam

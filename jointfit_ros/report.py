@@ -28,6 +28,7 @@ from __future__ import annotations
 import html
 import io
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -40,7 +41,7 @@ from jointfit_core.segments import PoseSumsCentre
 
 from .offline import FitRun, JointTrace
 
-__all__ = ["fit_summary", "joint_figure", "html_page", "SegmentGeometry", "segment_geometry"]
+__all__ = ["fit_summary", "joint_figure", "html_page", "SegmentGeometry", "geometries", "segment_geometry"]
 
 FloatArray = NDArray[np.float64]
 
@@ -92,8 +93,8 @@ class SegmentGeometry:
 
 def _residuals(markers: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     poses = poses_from_markers(markers, template)
-    fitted = np.einsum("nij,pj->npi", poses.R_world_local, template) + poses.d_world_local[:, None, :]
-    return np.linalg.norm(fitted - markers, axis=2), poses.R_world_local, poses.d_world_local
+    fitted = poses.R_world_local @ template.T + poses.d_world_local[:, :, None]  # (N, 3, P)
+    return np.linalg.norm(np.swapaxes(fitted, 1, 2) - markers, axis=2), poses.R_world_local, poses.d_world_local
 
 
 def segment_geometry(run: FitRun, trace: JointTrace) -> SegmentGeometry | None:
@@ -109,9 +110,19 @@ def segment_geometry(run: FitRun, trace: JointTrace) -> SegmentGeometry | None:
     with np.errstate(invalid="ignore"):
         rp, R_p, d_p = _residuals(parent, tp)
         rc, R_c, d_c = _residuals(child, tc)
-        cip = np.einsum("nji,npj->npi", R_p, child - d_p[:, None, :])
+        cip = (child - d_p[:, None, :]) @ R_p  # R_p^T (y - d_p) of every child marker
         joint = None if trace.final is None else _joint_residual(trace.final, R_p, d_p, R_c, d_c)
     return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip, joint)
+
+
+def geometries(run: FitRun) -> dict[str, SegmentGeometry | None]:
+    """:func:`segment_geometry` of every joint, by name (computed once for the summary and the figures)."""
+    return {t.runner.cfg.name: segment_geometry(run, t) for t in run.traces}
+
+
+def _geometry(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeometry | None] | None) -> SegmentGeometry | None:
+    name = trace.runner.cfg.name
+    return geos[name] if geos is not None and name in geos else segment_geometry(run, trace)
 
 
 def _joint_residual(
@@ -130,7 +141,7 @@ def _joint_residual(
     return out
 
 
-def _joint_summary(run: FitRun, trace: JointTrace) -> dict[str, Any]:
+def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeometry | None] | None) -> dict[str, Any]:
     r = trace.runner
     est = r.estimator
     sol = trace.final
@@ -174,7 +185,7 @@ def _joint_summary(run: FitRun, trace: JointTrace) -> dict[str, Any]:
         out["direction_sd_deg_child"] = _angle_sd_deg(sol.cov_direction_child)
         out["point_child"] = _list(sol.point_child)
         out["point_sd_child"] = _sd(sol.cov_point_child)
-    geo = segment_geometry(run, trace)
+    geo = _geometry(run, trace, geos)
     if geo is not None:
         rms: dict[str, float | None] = {}
         for names, res in ((r.cfg.parent_markers, geo.residual_parent), (r.cfg.child_markers, geo.residual_child)):
@@ -186,7 +197,9 @@ def _joint_summary(run: FitRun, trace: JointTrace) -> dict[str, Any]:
     return out
 
 
-def fit_summary(run: FitRun, *, elapsed_s: float, version: str) -> dict[str, Any]:
+def fit_summary(
+    run: FitRun, *, elapsed_s: float, version: str, geos: Mapping[str, SegmentGeometry | None] | None = None
+) -> dict[str, Any]:
     """The summary of a fit as JSON-able plain types.
 
     Parameters
@@ -196,6 +209,8 @@ def fit_summary(run: FitRun, *, elapsed_s: float, version: str) -> dict[str, Any
         Wall time of the fit, s.
     version : str
         jointfit's version.
+    geos : mapping, optional
+        :func:`geometries` of the run, when already computed.
 
     Returns
     -------
@@ -216,7 +231,7 @@ def fit_summary(run: FitRun, *, elapsed_s: float, version: str) -> dict[str, Any
         "inputs_read": run.n_inputs,
         "elapsed_s": round(elapsed_s, 3),
         "router": dict(run.router.counters) if run.router is not None else {},
-        "joints": [_joint_summary(run, t) for t in run.traces],
+        "joints": [_joint_summary(run, t, geos) for t in run.traces],
     }
 
 
@@ -236,6 +251,56 @@ def _pyplot() -> Any:
 
 def _subsample(n: int, at_most: int) -> NDArray[np.intp]:
     return np.unique(np.linspace(0, n - 1, min(n, at_most)).astype(np.intp)) if n else np.zeros(0, np.intp)
+
+
+#: Time series longer than twice this many points are drawn per bin (median line, maximum dots).
+PLOT_BINS = 400
+
+
+def binned(t: FloatArray, y: FloatArray, bins: int = PLOT_BINS) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    """A long series summarised in ``bins`` runs of consecutive samples, for plotting.
+
+    Parameters
+    ----------
+    t, y : ndarray, shape (N,)
+        Times (increasing) and values (NaN where undefined).
+    bins : int
+        Most runs; ``None`` is returned for series of at most ``2 * bins`` points (drawn as they are).
+
+    Returns
+    -------
+    t : ndarray, shape (B,)
+        Each run's middle time.
+    median, maximum : ndarray, shape (B,)
+        Of the run's finite values (NaN where it has none): the typical level, and the
+        peak, so that a one-sample spike (a label swap) stays as tall as it is.
+    """
+    n = y.shape[0]
+    if n <= 2 * bins:
+        return None
+    size = -(-n // bins)
+    rows = -(-n // size)
+    padded = np.full(rows * size, np.nan)
+    padded[:n] = y
+    runs = np.sort(padded.reshape(rows, size), axis=1)  # NaN last
+    k = np.isfinite(runs).sum(axis=1)
+    r = np.arange(rows)
+    lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
+    median = np.where(k > 0, 0.5 * (runs[r, lo] + runs[r, hi]), np.nan)
+    peak = np.where(k > 0, runs[r, np.maximum(k - 1, 0)], np.nan)
+    mid = t[np.minimum(r * size + size // 2, n - 1)]
+    return mid, median, peak
+
+
+def _plot_series(ax: Any, t: FloatArray, y: FloatArray, style: str, **kw: Any) -> str:
+    """``y`` against ``t``: as it is, or (long series) per-bin medians as ``style`` and maxima as dots; returns which."""
+    b = binned(t, y)
+    if b is None:
+        ax.plot(t, y, style, **kw)
+        return "every frame"
+    line = ax.plot(b[0], b[1], style, **kw)[0]
+    ax.plot(b[0], b[2], ".", ms=2, color=line.get_color())
+    return f"median (lines) and maximum (dots) of every {-(-y.shape[0] // PLOT_BINS)} frames"
 
 
 def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | PoseSumsAxis, names: tuple[str, ...], unit: str) -> None:
@@ -302,25 +367,35 @@ def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | Pose
 
 def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, unit: str) -> None:
     cfg = trace.runner.cfg
+    shown = ""
     for res, names, style in ((geo.residual_parent, cfg.parent_markers, "-"), (geo.residual_child, cfg.child_markers, "--")):
         for k, name in enumerate(names):
-            ax.plot(geo.t, res[:, k], style, lw=0.7, label=name)
+            shown = _plot_series(ax, geo.t, res[:, k], style, lw=0.8, label=name)
     ax.set_xlabel("time (s)")
     ax.set_ylabel(f"marker to posed template ({unit})")
-    ax.set_title("rigid-body residual per marker\n(parent solid, child dashed)", fontsize=9)
-    ax.legend(fontsize=7, ncol=2)
+    ax.set_title(f"rigid-body residual per marker (parent solid, child dashed)\n{shown}", fontsize=9)
+    ax.legend(fontsize=7, ncol=2, loc="upper right")
 
 
 def _draw_joint_residual(ax: Any, trace: JointTrace, geo: SegmentGeometry | None, t0: float, unit: str) -> None:
     what = "centres carried by parent and child" if trace.runner.cfg.type == "ball" else "parent axis point to child axis"
     if trace.output_stamps or geo is None or geo.joint_residual is None:
-        ax.plot(np.asarray(trace.output_stamps) - t0, trace.residuals, ".", ms=1.5, color="C0")
+        t, y = np.asarray(trace.output_stamps, dtype=np.float64) - t0, np.asarray(trace.residuals, dtype=np.float64)
     else:
-        ax.plot(geo.t, geo.joint_residual, ".", ms=1.5, color="C0")
+        t, y = geo.t, geo.joint_residual
         what += ", final estimate"
+    b = binned(t, y)
+    if b is None:
+        ax.plot(t, y, ".", ms=1.5, color="C0")
+        shown = "every frame"
+    else:
+        ax.plot(b[0], b[1], "-", lw=1, color="C0", label="median")
+        ax.plot(b[0], b[2], ".", ms=2, color="C3", label="maximum")
+        ax.legend(fontsize=7, loc="upper right")
+        shown = f"median and maximum of every {-(-y.shape[0] // PLOT_BINS)} frames"
     ax.set_xlabel("time (s)")
     ax.set_ylabel(f"distance ({unit})")
-    ax.set_title(f"per-frame joint residual: {what}", fontsize=9)
+    ax.set_title(f"per-frame joint residual: {what}\n{shown}", fontsize=9)
 
 
 def _draw_convergence(ax_est: Any, ax_sd: Any, trace: JointTrace, unit: str) -> None:
@@ -370,6 +445,7 @@ def _draw_ellipses(ax: Any, cov: FloatArray, unit: str, title: str) -> None:
     ax.axhline(0, color="0.8", lw=0.5)
     ax.axvline(0, color="0.8", lw=0.5)
     ax.set_xlabel(f"first coordinate of the plane ({unit})")
+    ax.xaxis.get_offset_text().set_x(1.04)  # a "1e-5" multiplier beside the axis, not on its label
     ax.set_ylabel(f"second coordinate ({unit})")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
@@ -392,8 +468,10 @@ def _headline(trace: JointTrace, unit: str) -> str:
     return f"{head}: {est}\n{frames}; {verdict}"
 
 
-def joint_figure(run: FitRun, trace: JointTrace) -> bytes:
+def joint_figure(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeometry | None] | None = None) -> bytes:
     """One joint's report figure as PNG bytes (see the module docstring for the panels).
+
+    ``geos``: :func:`geometries` of the run, when already computed.
 
     Raises
     ------
@@ -405,7 +483,7 @@ def joint_figure(run: FitRun, trace: JointTrace) -> bytes:
     fig = plt.figure(figsize=(17, 10))
     try:
         grid = fig.add_gridspec(2, 3, hspace=0.35, wspace=0.45)
-        geo = segment_geometry(run, trace)
+        geo = _geometry(run, trace, geos)
         sol = trace.final
         if geo is not None and sol is not None:
             _draw_trajectories(fig.add_subplot(grid[0, 0], projection="3d"), geo, sol, trace.runner.cfg.child_markers, unit)

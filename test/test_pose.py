@@ -70,6 +70,25 @@ def test_poses_recover_known_poses_without_noise() -> None:
     assert (poses.n_visible == 4).all()
 
 
+def test_poses_equal_the_svd_procrustes_with_noise_occlusions_and_reflections() -> None:
+    """Horn's batched rotation is Kabsch's optimum (reflection excluded), per frame, on the visible markers."""
+    rng = np.random.default_rng(11)
+    x = _cluster(rng, 5)
+    y, _, _ = _motion(rng, x, 400, 2.0)
+    y[150:200] *= np.array([1.0, 1.0, -1.0])  # mirrored frames: the best proper rotation, not a reflection
+    y[rng.random(y.shape[:2]) < 0.15] = np.nan
+    poses = poses_from_markers(y, x)
+    for k in np.flatnonzero(poses.valid):
+        seen = np.isfinite(y[k]).all(axis=1)
+        R, d = _procrustes(y[k, seen], x[seen])
+        np.testing.assert_allclose(poses.R_world_local[k], R, atol=1e-12)
+        np.testing.assert_allclose(poses.d_world_local[k], d, atol=1e-9)
+        rms = np.sqrt(np.mean(np.sum((y[k, seen] - x[seen] @ R.T - d) ** 2, axis=1)))
+        assert poses.rms[k] == pytest.approx(rms, rel=1e-10)
+    assert poses.valid.sum() > 300 and (~poses.valid).sum() > 0  # frames with < 3 markers seen
+    np.testing.assert_allclose(np.linalg.det(poses.R_world_local[poses.valid]), 1.0, atol=1e-12)
+
+
 def test_pose_covariance_calibrated() -> None:
     """Rotation + centroid translation errors against Pennec & Thirion's covariance: mean e/6 ~ 1."""
     rng = np.random.default_rng(2)

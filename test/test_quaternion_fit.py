@@ -13,8 +13,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from jointfit_core.estimator import _HORN_A
-from jointfit_core.quaternion_fit import adjugate, determinant, largest_eigenpair
+from jointfit_core.quaternion_fit import HORN_A, adjugate, determinant, largest_eigenpair
 
 FloatArray = NDArray[np.float64]
 
@@ -24,7 +23,7 @@ def _horn(x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray, FloatAr
     xc = x - x.mean(axis=1, keepdims=True)
     yc = y - y.mean(axis=1, keepdims=True)
     S = np.einsum("mpi,mpj->mij", xc, yc)
-    N = (S.reshape(-1, 9) @ _HORN_A.T).reshape(-1, 4, 4)
+    N = (S.reshape(-1, 9) @ HORN_A.T).reshape(-1, 4, 4)
     return N, S, 0.5 * (np.einsum("mpi,mpi->m", xc, xc) + np.einsum("mpi,mpi->m", yc, yc))
 
 
