@@ -55,6 +55,7 @@ __all__ = [
     "supported_topics",
     "select_topics",
     "iter_bag_messages",
+    "iter_selected_messages",
 ]
 
 #: Message types that jointfit reads from a bag, as rosbag2 names them.
@@ -355,10 +356,16 @@ def iter_bag_messages(path: str | os.PathLike[str], topics: Sequence[str]) -> It
     a bag is never left open by an iterator that was not consumed.
     """
     selected = [info.name for info in select_topics(path, topics)]
-    return _messages(path, selected)
+    return iter_selected_messages(path, selected)
 
 
-def _messages(path: str | os.PathLike[str], selected: list[str]) -> Iterator[BagMessage]:
+def iter_selected_messages(path: str | os.PathLike[str], selected: Sequence[str]) -> Iterator[BagMessage]:
+    """:func:`iter_bag_messages` of topics already checked: the names :func:`select_topics` returned.
+
+    The bag is opened once, when the iteration starts (a sqlite3 bag's open
+    counts its messages: ~0.13 s per 100 000). Unknown names select nothing.
+    Raises :class:`InputError` during the iteration for an unreadable bag.
+    """
     with _OpenBag(path) as reader:
         conns = [c for c in reader.connections if c.topic in selected]
         try:

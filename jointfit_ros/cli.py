@@ -3,7 +3,8 @@
 Usage::
 
     jointfit fit INPUT --config FILE [--out DIR] [--node-name NAME] [--window {all,config}]
-                 [--html] [--no-report] [--write-calibration] [--progress | --quiet]
+                 [--html] [--no-report] [--write-calibration] [--single-process]
+                 [--progress | --quiet]
     jointfit replay BAG [--rate R] [--loop] [--topics T ...] ...   (see jointfit_ros.replay)
     python -m jointfit_ros.cli fit ...
 
@@ -87,6 +88,12 @@ def _fit_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write each identified joint's calibration to its configured calibration_file (old one kept as .bak)",
     )
+    p.add_argument(
+        "--single-process",
+        action="store_true",
+        help="read and parse a bag in this process (default: in a second process while the estimators run, "
+        "for bags longer than one block; the results are the same)",
+    )
     shown = p.add_mutually_exclusive_group()
     shown.add_argument("--progress", action="store_true", help="show progress even when stderr is not a terminal")
     shown.add_argument("--quiet", action="store_true", help="print only errors")
@@ -146,6 +153,7 @@ def fit_main(argv: Sequence[str]) -> int:
             cfg,
             whole_recording=opts.window == "all",
             keep_frames=not opts.no_report,
+            reader_process=False if opts.single_process else None,
             progress=_progress_printer(f"fitting {Path(opts.input).name}") if show else None,
         )
         geos = geometries(run)

@@ -34,7 +34,7 @@ from .raw import (
 )
 from .runner import JointRunner
 
-__all__ = ["MessageRouter", "Routed", "route_frame"]
+__all__ = ["MessageRouter", "ParsedMarkers", "Routed", "parse_markers", "route_frame"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -51,6 +51,121 @@ class Routed:
     stamp_ns: int
     frame_id: str
     output: JointOutput
+
+
+@dataclass(frozen=True)
+class ParsedMarkers:
+    """A block of ``marker_topic`` messages parsed: what :meth:`MessageRouter.route_parsed` takes.
+
+    Attributes
+    ----------
+    n : int
+        Marker messages in the block (kept or not).
+    index : ndarray, shape (K,), int64
+        Positions, among the block's marker messages, of those kept, increasing.
+    stamps_ns : ndarray, shape (K,), int64
+    frame_ids : list of str, length K
+    frames : ndarray, shape (K, P, 3)
+        In ``marker_names`` order, NaN where missing.
+    problems : list of (int, str, str, str)
+        ``(position, key, text, counter)`` of each message dropped, in position order.
+    label_problems : int
+        Kept labelled clouds with out-of-range or duplicated labels.
+    """
+
+    n: int
+    index: IntArray
+    stamps_ns: IntArray
+    frame_ids: list[str]
+    frames: FloatArray
+    problems: list[tuple[int, str, str, str]]
+    label_problems: int = 0
+
+
+def parse_markers(cfg: NodeConfig, raws: Sequence[bytes]) -> ParsedMarkers:
+    """Parse a block of labelled or ordered marker messages (a function of the bytes and ``cfg`` only).
+
+    Parameters
+    ----------
+    cfg : NodeConfig
+        ``marker_type``, ``marker_names``, ``label_field``, ``zero_is_missing``,
+        ``input_frame_id`` and ``marker_topic`` (for the texts) are used.
+    raws : sequence of bytes
+        Messages of ``marker_topic``, oldest first.
+
+    Returns
+    -------
+    ParsedMarkers
+
+    Raises
+    ------
+    ValueError
+        ``cfg.unlabelled``: unlabelled clouds are labelled against the previous
+        frame, so they are parsed by :meth:`MessageRouter.frame`, in order.
+
+    Notes
+    -----
+    Messages are parsed in groups of one layout
+    (:func:`~jointfit_ros.raw.parse_pose_arrays`,
+    :func:`~jointfit_ros.raw.parse_pointcloud2s`), ordered by labels or by
+    position with array operations, and checked (infinite coordinates, point
+    count, labels, frame id) per message: the same frames and drops as
+    :meth:`MessageRouter.frame` of each message.
+    """
+    if cfg.unlabelled:
+        raise ValueError("unlabelled clouds are parsed one by one (MessageRouter.frame)")
+    n = len(cfg.marker_names)
+    problems: list[tuple[int, str, str, str]] = []
+    flagged_total = 0
+    topic = cfg.marker_topic
+    if cfg.marker_type == "pose_array":
+        batch = parse_pose_arrays(raws)
+    else:
+        batch = parse_pointcloud2s(raws, label_field=cfg.label_field or None)
+    malformed = f"dropped a malformed message on {topic}: "
+    for i, exc in batch.errors.items():
+        problems.append((i, "malformed", malformed + str(exc), "malformed"))
+    parts: list[tuple[IntArray, IntArray, str, FloatArray]] = []
+    for g in batch.groups:
+        inf = np.isinf(g.points.reshape(g.points.shape[0], -1)).any(axis=1)
+        problems.extend((int(i), "malformed", malformed + _INF_TEXT, "malformed") for i in g.index[inf])
+        ok = ~inf
+        index, points = g.index[ok], g.points[ok]
+        if g.labels is None and points.shape[1] != n:
+            text = malformed + _count_text(points.shape[1], n)
+            problems.extend((int(i), "malformed", text, "malformed") for i in index)
+            continue
+        if g.labels is not None:
+            frames, flagged = _frames_from_labels(points, g.labels[ok], n)
+            flagged_total += int(np.count_nonzero(flagged))
+        else:
+            frames = points.copy()
+        frames = _mark_missing_many(frames, cfg.zero_is_missing)
+        wanted = cfg.input_frame_id
+        if wanted and g.frame_id != wanted:
+            text = f"dropped a message on {topic} in frame {g.frame_id!r}; input_frame_id is {wanted!r}"
+            problems.extend((int(i), f"frame_id:{topic}", text, "wrong_frame_id") for i in index)
+            continue
+        parts.append((index, g.stamps_ns[ok], g.frame_id, frames))
+    problems.sort(key=lambda p: p[0])
+    if not parts:
+        empty = np.zeros(0, dtype=np.int64)
+        return ParsedMarkers(len(raws), empty, empty.copy(), [], np.zeros((0, n, 3)), problems, flagged_total)
+    if len(parts) == 1:
+        index, stamps, frame_id, frames = parts[0]
+        return ParsedMarkers(len(raws), index, stamps, [frame_id] * index.size, frames, problems, flagged_total)
+    index = np.concatenate([p[0] for p in parts])
+    order = np.argsort(index, kind="stable")
+    ids = [p[2] for p in parts for _ in range(p[0].size)]
+    return ParsedMarkers(
+        len(raws),
+        index[order],
+        np.concatenate([p[1] for p in parts])[order],
+        [ids[k] for k in order],
+        np.concatenate([p[3] for p in parts])[order],
+        problems,
+        flagged_total,
+    )
 
 
 def route_frame(runners: Sequence[JointRunner], stamp_ns: int, frame_id: str, frame: FloatArray) -> list[Routed]:
@@ -201,85 +316,30 @@ class MessageRouter:
         Notes
         -----
         The same frames, drops, counters and :attr:`last_problem` as
-        :meth:`frame` of each message in turn. Messages are parsed in
-        groups of one layout (:func:`~jointfit_ros.raw.parse_pose_arrays`,
-        :func:`~jointfit_ros.raw.parse_pointcloud2s`), ordered by labels or
-        by position with array operations, and checked (infinite
-        coordinates, point count, labels, frame id) per message; the
-        problems are then counted in message order. Unlabelled clouds
+        :meth:`frame` of each message in turn (:func:`parse_markers`; the
+        problems are then counted in message order). Unlabelled clouds
         (``unlabelled``) are labelled against the previous frame, so they go
         through :meth:`frame` one by one.
         """
-        index, stamps, frame_ids, frames, problems = self._parse_markers(raws)
-        for problem in problems:
+        parsed = self._parse_markers(raws)
+        self.counters["label_problems"] += parsed.label_problems
+        for problem in parsed.problems:
             self._problem(*problem[1:])
-        return index, stamps, frame_ids, frames
+        return parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames
 
-    def _parse_markers(
-        self, raws: Sequence[bytes]
-    ) -> tuple[IntArray, IntArray, list[str], FloatArray, list[tuple[int, str, str, str]]]:
-        """:meth:`frames_many` without counting the problems: returns them, ``(position, key, text, counter)``.
-
-        (``label_problems`` is counted here; unlabelled clouds go through :meth:`frame`, which counts.)
-        """
-        cfg = self.cfg
-        n = len(cfg.marker_names)
-        problems: list[tuple[int, str, str, str]] = []
-        if cfg.unlabelled:
-            got = [(i, self.frame(raw)) for i, raw in enumerate(raws)]
-            kept = [(i, g) for i, g in got if g is not None]
-            return (
-                np.array([i for i, _ in kept], dtype=np.int64),
-                np.array([g[0] for _, g in kept], dtype=np.int64),
-                [g[1] for _, g in kept],
-                np.stack([g[2] for _, g in kept]) if kept else np.zeros((0, n, 3)),
-                problems,
-            )
-        topic = cfg.marker_topic
-        if cfg.marker_type == "pose_array":
-            batch = parse_pose_arrays(raws)
-        else:
-            batch = parse_pointcloud2s(raws, label_field=cfg.label_field or None)
-        malformed = f"dropped a malformed message on {topic}: "
-        for i, exc in batch.errors.items():
-            problems.append((i, "malformed", malformed + str(exc), "malformed"))
-        parts: list[tuple[IntArray, IntArray, str, FloatArray]] = []
-        for g in batch.groups:
-            inf = np.isinf(g.points.reshape(g.points.shape[0], -1)).any(axis=1)
-            problems.extend((int(i), "malformed", malformed + _INF_TEXT, "malformed") for i in g.index[inf])
-            ok = ~inf
-            index, points = g.index[ok], g.points[ok]
-            if g.labels is None and points.shape[1] != n:
-                text = malformed + _count_text(points.shape[1], n)
-                problems.extend((int(i), "malformed", text, "malformed") for i in index)
-                continue
-            if g.labels is not None:
-                frames, flagged = _frames_from_labels(points, g.labels[ok], n)
-                self.counters["label_problems"] += int(np.count_nonzero(flagged))
-            else:
-                frames = points.copy()
-            frames = _mark_missing_many(frames, cfg.zero_is_missing)
-            wanted = cfg.input_frame_id
-            if wanted and g.frame_id != wanted:
-                text = f"dropped a message on {topic} in frame {g.frame_id!r}; input_frame_id is {wanted!r}"
-                problems.extend((int(i), f"frame_id:{topic}", text, "wrong_frame_id") for i in index)
-                continue
-            parts.append((index, g.stamps_ns[ok], g.frame_id, frames))
-        problems.sort(key=lambda p: p[0])
-        if not parts:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), [], np.zeros((0, n, 3)), problems
-        if len(parts) == 1:
-            index, stamps, frame_id, frames = parts[0]
-            return index, stamps, [frame_id] * index.size, frames, problems
-        index = np.concatenate([p[0] for p in parts])
-        order = np.argsort(index, kind="stable")
-        ids = [p[2] for p in parts for _ in range(p[0].size)]
-        return (
-            index[order],
-            np.concatenate([p[1] for p in parts])[order],
-            [ids[k] for k in order],
-            np.concatenate([p[3] for p in parts])[order],
-            problems,
+    def _parse_markers(self, raws: Sequence[bytes]) -> ParsedMarkers:
+        """:func:`parse_markers`, or unlabelled clouds through :meth:`frame` one by one (which counts their problems)."""
+        if not self.cfg.unlabelled:
+            return parse_markers(self.cfg, raws)
+        got = [(i, self.frame(raw)) for i, raw in enumerate(raws)]
+        kept = [(i, g) for i, g in got if g is not None]
+        return ParsedMarkers(
+            len(raws),
+            np.array([i for i, _ in kept], dtype=np.int64),
+            np.array([g[0] for _, g in kept], dtype=np.int64),
+            [g[1] for _, g in kept],
+            np.stack([g[2] for _, g in kept]) if kept else np.zeros((0, len(self.cfg.marker_names), 3)),
+            [],
         )
 
     def markers_many(self, raws: Sequence[bytes]) -> list[Routed]:
@@ -319,9 +379,38 @@ class MessageRouter:
             for topic, raw in messages:
                 out.extend(self.markers(raw) if topic is None else self.pose(topic, raw))
             return out
-        raws = [raw for topic, raw in messages if topic is None]
-        self.counters["messages"] += len(raws)
-        index, stamps, frame_ids, frames, problems = self._parse_markers(raws)
+        parsed = self._parse_markers([raw for topic, raw in messages if topic is None])
+        poses = [(i, topic, raw) for i, (topic, raw) in enumerate(messages) if topic is not None]
+        return self.route_parsed(parsed, poses)
+
+    def route_parsed(self, parsed: ParsedMarkers, poses: Sequence[tuple[int, str, bytes]] = ()) -> list[Routed]:
+        """:meth:`route_many` of a block whose marker messages are already parsed.
+
+        Parameters
+        ----------
+        parsed : ParsedMarkers
+            The block's marker messages (:func:`parse_markers`).
+        poses : sequence of (int, str, bytes)
+            The block's pose-topic messages: ``(position in the block, topic, raw)``,
+            by position; the marker messages fill the other positions, in order.
+
+        Returns
+        -------
+        list of Routed
+            As :meth:`route_many`.
+
+        Raises
+        ------
+        ValueError
+            A joint takes chain markers (those go through :meth:`route_many`, one message at a time).
+        """
+        if any(r.chained for r in self.marker_runners):
+            raise ValueError("chain joints are routed one message at a time (route_many)")
+        self.counters["messages"] += parsed.n
+        self.counters["label_problems"] += parsed.label_problems
+        index, stamps, frame_ids, frames, problems = (
+            parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
+        )
         if index.size:
             if self.recorded is not None:
                 self.recorded.extend(zip(stamps.tolist(), frames, strict=True))
@@ -329,8 +418,8 @@ class MessageRouter:
                 if runner.matcher is None:
                     runner.markers_block(stamps, frames)
         paired = [r for r in self.marker_runners if r.matcher is not None]
-        out = []
-        if not paired and len(raws) == len(messages):
+        out: list[Routed] = []
+        if not paired and not poses:
             for problem in problems:
                 self._problem(*problem[1:])
             if index.size:
@@ -338,10 +427,12 @@ class MessageRouter:
             return out
         row_of = dict(zip(index.tolist(), range(index.size), strict=True))
         next_problem = 0
+        next_pose = 0
         j = 0  # position among the marker messages
-        for topic, raw in messages:
-            if topic is not None:
-                out.extend(self.pose(topic, raw))
+        for position in range(parsed.n + len(poses)):
+            if next_pose < len(poses) and poses[next_pose][0] == position:
+                out.extend(self.pose(*poses[next_pose][1:]))
+                next_pose += 1
                 continue
             while next_problem < len(problems) and problems[next_problem][0] == j:
                 self._problem(*problems[next_problem][1:])

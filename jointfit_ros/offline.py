@@ -28,10 +28,11 @@ marker frames.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,8 +44,9 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.io import MarkerData, read_c3d, read_trc
 from jointfit_core.segments import PoseSumsCentre
 
-from .bag import iter_bag_messages, select_topics
-from .inputs import MessageRouter, route_frame
+from .bag import iter_selected_messages, select_topics
+from .bag_blocks import can_fork, parsed_blocks, split_blocks
+from .inputs import MessageRouter, Routed, route_frame
 from .params import ConfigError, NodeConfig
 from .runner import JointRunner
 
@@ -240,39 +242,38 @@ def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
 MAX_BLOCK = 4096
 
 
-def _bag_events(run: FitRun, topics: list[str], step: int) -> Iterator[int]:
-    """Route every message in blocks (:meth:`MessageRouter.route_many`); yields the number of messages of each.
+def _bag_events(run: FitRun, topics: list[str], step: int, process: bool) -> Generator[int, None, None]:
+    """Route every message in blocks; yields the number of messages of each.
 
     A block ends after ``MAX_BLOCK`` messages or when the message count reaches a multiple of ``step``
     (so that checkpoints fall between blocks, where message-by-message routing would take them).
+    Marker messages are parsed a block at a time (:func:`~jointfit_ros.bag_blocks.parsed_blocks`,
+    in a second process with ``process``) and routed with
+    :meth:`MessageRouter.route_parsed`; unlabelled clouds and chain joints, which need the
+    previous frame, go through :meth:`MessageRouter.route_many`.
     """
     router = run.router
     assert router is not None
     marker_topic = topics[0] if any(r.uses_marker_topic for r in router.runners) else None
     traces = {id(t.runner): t for t in run.traces}
-    pending: list[tuple[str | None, bytes]] = []
-    done = 0
-    limit = min(MAX_BLOCK, step)  # the block's length: to the next multiple of step, at most MAX_BLOCK
-    for msg in iter_bag_messages(run.path, topics):
-        pending.append((None if msg.topic == marker_topic else msg.topic, msg.raw))
-        if len(pending) >= limit:
-            for r in router.route_many(pending):
-                t = traces[id(r.runner)]
-                t.output_stamps.append(r.stamp_ns * 1e-9)
-                t.residuals.append(r.output.residual)
-            done += len(pending)
-            yield len(pending)
-            pending = []
-            limit = min(MAX_BLOCK, step - done % step)
-    if pending:
-        for r in router.route_many(pending):
+
+    def note(routed: list[Routed]) -> None:
+        for r in routed:
             t = traces[id(r.runner)]
             t.output_stamps.append(r.stamp_ns * 1e-9)
             t.residuals.append(r.output.residual)
-        yield len(pending)
+
+    if run.cfg.unlabelled or any(r.chained for r in router.runners):
+        for block in split_blocks(iter_selected_messages(run.path, topics), marker_topic, step, MAX_BLOCK):
+            note(router.route_many(block))
+            yield len(block)
+        return
+    for parsed, poses in parsed_blocks(run.path, topics, marker_topic, run.cfg, step, MAX_BLOCK, process=process):
+        note(router.route_parsed(parsed, poses))
+        yield parsed.n + len(poses)
 
 
-def _marker_events(run: FitRun, data: MarkerData, step: int) -> Iterator[int]:
+def _marker_events(run: FitRun, data: MarkerData, step: int) -> Generator[int, None, None]:
     """Give the frames of a marker file to every joint in blocks; yields the number of frames of each."""
     frames = data.select(run.cfg.marker_names)
     stamps_ns = np.rint((data.first_frame + np.arange(data.n_frames)) / data.rate * 1e9).astype(np.int64)
@@ -307,6 +308,7 @@ def run_fit(
     n_checkpoints: int = 60,
     keep_frames: bool = True,
     progress: ProgressFn | None = None,
+    reader_process: bool | None = None,
 ) -> FitRun:
     """Run every configured joint over a recording, in order, and solve at the end.
 
@@ -328,6 +330,11 @@ def run_fit(
         Keep the marker frames (``FitRun.frames``) for the report.
     progress : callable, optional
         ``progress(done, total)`` called about every 1 % of the inputs.
+    reader_process : bool, optional
+        Bags: read and parse in a second process while the estimators run
+        (:mod:`jointfit_ros.bag_blocks`; the same results). Default: when the
+        bag has more than one block of messages and the process may fork
+        (:func:`~jointfit_ros.bag_blocks.can_fork`).
 
     Returns
     -------
@@ -356,7 +363,9 @@ def run_fit(
         if keep_frames:
             run.router.recorded = []
         step = max(1, total // max(n_checkpoints, 1))
-        events = _bag_events(run, topics, step)
+        if reader_process is None:
+            reader_process = total > MAX_BLOCK and can_fork()
+        events = _bag_events(run, topics, step, reader_process)
     else:
         data = _read_markers(file, kind, cfg)
         total = data.n_frames
@@ -367,12 +376,13 @@ def run_fit(
         events = _marker_events(run, data, step)
     tick = max(1, total // 100)
     done = 0
-    for n in events:
-        done += n
-        if done % step == 0:
-            _checkpoint(run.traces)
-        if progress is not None and done // tick > (done - n) // tick:
-            progress(done, total)
+    with contextlib.closing(events):  # a reader process stops with the fit, also on an error
+        for n in events:
+            done += n
+            if done % step == 0:
+                _checkpoint(run.traces)
+            if progress is not None and done // tick > (done - n) // tick:
+                progress(done, total)
     run.n_inputs = done
     for t in run.traces:
         if not t.runner.estimate(force=True):

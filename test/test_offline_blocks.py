@@ -194,8 +194,12 @@ def test_markers_block_gives_bad_frames_one_by_one() -> None:
         assert rel_diff(a.estimator._sums.sums, b.estimator._sums.sums) < SUMS_RTOL  # type: ignore[union-attr]
 
 
-def test_fit_with_pose_topics_equals_message_by_message(tmp_path: Path) -> None:
-    """Marker joints in blocks; a joint pairing markers with a pose topic and a pose-only joint in bag order."""
+@pytest.mark.parametrize("reader_process", [False, True])
+def test_fit_with_pose_topics_equals_message_by_message(tmp_path: Path, reader_process: bool) -> None:
+    """Marker joints in blocks; a joint pairing markers with a pose topic and a pose-only joint in bag order.
+
+    ``reader_process``: the bag read and parsed in a second process (:mod:`jointfit_ros.bag_blocks`).
+    """
     pytest.importorskip("rosbags")
     from bagtools import write_marker_bag
 
@@ -228,7 +232,7 @@ def test_fit_with_pose_topics_equals_message_by_message(tmp_path: Path) -> None:
         },
     )
     cfg = node_config(values)
-    run = run_fit(bag, cfg, whole_recording=False, n_checkpoints=13)
+    run = run_fit(bag, cfg, whole_recording=False, n_checkpoints=13, reader_process=reader_process)
 
     # The node's way, with the offline fit's checkpoints: every message in bag order, one at a time.
     runners = [JointRunner(j, run.cfg) for j in run.cfg.joints]

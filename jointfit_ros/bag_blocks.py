@@ -1,0 +1,245 @@
+"""A bag's messages in blocks, optionally read and parsed in a second process while the estimators run.
+
+ROS-free. ``jointfit fit`` reads a bag, parses its marker messages and runs
+the estimators; the first two take about as long as the third. With
+``process=True`` (:func:`parsed_blocks`) a forked child process reads the bag
+and parses each block (:func:`~jointfit_ros.inputs.parse_markers`) while the
+parent routes the previous block to the estimators, so that on two cores the
+wall time is nearer the larger of the two than their sum.
+
+The child writes each block's frames, stamps and positions into one of
+``SLOTS`` slots of an anonymous shared memory map and sends the rest (frame
+ids, problems, pose messages: usually well under the pipe's buffer, so that
+the child does not wait on the parent's reading) through a pipe; the parent
+copies the arrays out and frees the slot. The blocks, and so every number the fit computes, are the
+same as when they are read and parsed in-process (tested).
+
+The child ignores SIGINT (the parent handles it and stops the child), and it
+exits when the parent goes away: a send to a closed pipe fails, and a wait for
+a free slot checks the parent every second.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import mmap
+import multiprocessing
+import os
+import signal
+import threading
+from collections.abc import Iterable, Iterator, Sequence
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jointfit_core.errors import InputError
+
+from .bag import iter_selected_messages
+from .inputs import ParsedMarkers, parse_markers
+from .params import NodeConfig
+
+__all__ = ["Message", "PoseMessage", "can_fork", "parsed_blocks", "split_blocks"]
+
+FloatArray = NDArray[np.float64]
+
+#: ``(None, raw)`` for a message of the marker topic, ``(topic, raw)`` for one of a pose topic.
+Message = tuple[str | None, bytes]
+#: A pose-topic message of a block: ``(position in the block, topic, raw)``.
+PoseMessage = tuple[int, str, bytes]
+
+#: Shared-memory slots: the child reads and parses up to ``SLOTS - 1`` blocks ahead of the parent.
+SLOTS = 3
+#: A child waiting for a free slot checks this often (s) that its parent is still there.
+PARENT_CHECK_S = 1.0
+
+
+def split_blocks(
+    messages: Iterable[Any], marker_topic: str | None, step: int, max_block: int
+) -> Iterator[list[Message]]:
+    """Messages (objects with ``topic`` and ``raw``) in blocks of at most ``max_block``.
+
+    A block also ends where the message count reaches a multiple of ``step``
+    (where the offline fit takes its checkpoints). Messages on ``marker_topic``
+    become ``(None, raw)``, the others ``(topic, raw)``.
+    """
+    pending: list[Message] = []
+    done = 0
+    limit = min(max_block, step)  # the block's length: to the next multiple of step, at most max_block
+    for msg in messages:
+        pending.append((None if msg.topic == marker_topic else msg.topic, msg.raw))
+        if len(pending) >= limit:
+            yield pending
+            done += len(pending)
+            pending = []
+            limit = min(max_block, step - done % step)
+    if pending:
+        yield pending
+
+
+def _parse_block(cfg: NodeConfig, block: Sequence[Message]) -> tuple[ParsedMarkers, list[PoseMessage]]:
+    parsed = parse_markers(cfg, [raw for topic, raw in block if topic is None])
+    return parsed, [(i, topic, raw) for i, (topic, raw) in enumerate(block) if topic is not None]
+
+
+def can_fork() -> bool:
+    """Whether the fit may fork its reader: ``fork`` exists and this process runs no other Python thread.
+
+    (A fork copies only the calling thread; one holding a lock elsewhere could leave it locked in the child.)
+    """
+    return "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
+
+
+def parsed_blocks(
+    path: str | os.PathLike[str],
+    topics: Sequence[str],
+    marker_topic: str | None,
+    cfg: NodeConfig,
+    step: int,
+    max_block: int,
+    *,
+    process: bool,
+) -> Iterator[tuple[ParsedMarkers, list[PoseMessage]]]:
+    """A bag's messages in blocks (:func:`split_blocks`), the marker messages parsed.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The bag.
+    topics : sequence of str
+        Topics to read, as :func:`~jointfit_ros.bag.select_topics` named them
+        (:func:`~jointfit_ros.bag.iter_selected_messages`: the bag is opened once).
+    marker_topic : str or None
+        The one holding marker messages (None: none does).
+    cfg : NodeConfig
+        For :func:`~jointfit_ros.inputs.parse_markers` (not ``unlabelled``).
+    step, max_block : int
+        Block boundaries (:func:`split_blocks`).
+    process : bool
+        Read and parse in a forked child process (see the module docstring).
+
+    Yields
+    ------
+    parsed : ParsedMarkers
+    poses : list of (int, str, bytes)
+        The block's pose-topic messages; the two are what
+        :meth:`~jointfit_ros.inputs.MessageRouter.route_parsed` takes.
+
+    Raises
+    ------
+    InputError
+        The bag cannot be read (the child's error, re-raised here), or the child stopped.
+    """
+    if not process:
+        for block in split_blocks(iter_selected_messages(path, topics), marker_topic, step, max_block):
+            yield _parse_block(cfg, block)
+        return
+    yield from _ProcessReader(Path(path), topics, marker_topic, cfg, step, max_block).blocks()
+
+
+class _ProcessReader:
+    """The forked child that reads and parses, and the parent's end of it."""
+
+    def __init__(
+        self, path: Path, topics: Sequence[str], marker_topic: str | None, cfg: NodeConfig, step: int, max_block: int
+    ) -> None:
+        ctx = multiprocessing.get_context("fork")
+        n = len(cfg.marker_names)
+        self.path = path
+        self.slots = _Slots(max_block, n)
+        self.free = ctx.Semaphore(SLOTS)
+        self.conn, child_end = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(
+            target=_serve,
+            args=(child_end, self.slots, self.free, os.getpid(), path, list(topics), marker_topic, cfg, step, max_block),
+            name="jointfit-bag-reader",
+            daemon=True,
+        )
+        self.proc.start()
+        child_end.close()
+
+    def blocks(self) -> Iterator[tuple[ParsedMarkers, list[PoseMessage]]]:
+        try:
+            while True:
+                try:
+                    msg = self.conn.recv()
+                except EOFError:
+                    self.proc.join(5.0)
+                    raise InputError(f"{self.path}: the bag reader process stopped (exit code {self.proc.exitcode})") from None
+                if msg[0] == "end":
+                    return
+                if msg[0] == "error":
+                    raise msg[1]
+                _, slot, k, meta, poses = msg
+                parsed = dataclasses.replace(
+                    meta,
+                    index=self.slots.index[slot, :k].copy(),
+                    stamps_ns=self.slots.stamps[slot, :k].copy(),
+                    frames=self.slots.frames[slot, :k].copy(),
+                )
+                self.free.release()
+                yield parsed, poses
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self.conn.close()
+        if self.proc.is_alive():
+            self.proc.terminate()
+        self.proc.join(5.0)
+
+
+class _Slots:
+    """``SLOTS`` blocks' arrays in one anonymous shared map (inherited by the forked child)."""
+
+    def __init__(self, max_block: int, n_markers: int) -> None:
+        sizes = (max_block * n_markers * 3, max_block, max_block)  # frames, index, stamps: 8-byte items
+        buf = mmap.mmap(-1, SLOTS * sum(sizes) * 8)
+        flat = np.frombuffer(buf, dtype=np.uint8)
+        cut = np.cumsum([0, *(SLOTS * z * 8 for z in sizes)])
+        self.frames = flat[cut[0] : cut[1]].view(np.float64).reshape(SLOTS, max_block, n_markers, 3)
+        self.index = flat[cut[1] : cut[2]].view(np.int64).reshape(SLOTS, max_block)
+        self.stamps = flat[cut[2] : cut[3]].view(np.int64).reshape(SLOTS, max_block)
+
+
+def _serve(
+    conn: Connection,
+    slots: _Slots,
+    free: Any,
+    parent: int,
+    path: Path,
+    topics: list[str],
+    marker_topic: str | None,
+    cfg: NodeConfig,
+    step: int,
+    max_block: int,
+) -> None:
+    """The child: read, parse, and hand each block over (see the module docstring)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    no_frames = np.zeros((0, len(cfg.marker_names), 3))
+    no_ints = np.zeros(0, dtype=np.int64)
+    slot = 0
+    try:
+        for block in split_blocks(iter_selected_messages(path, topics), marker_topic, step, max_block):
+            parsed, poses = _parse_block(cfg, block)
+            while not free.acquire(timeout=PARENT_CHECK_S):
+                if os.getppid() != parent:
+                    return
+            k = parsed.index.size
+            slots.frames[slot, :k] = parsed.frames
+            slots.index[slot, :k] = parsed.index
+            slots.stamps[slot, :k] = parsed.stamps_ns
+            conn.send(("block", slot, k, dataclasses.replace(parsed, index=no_ints, stamps_ns=no_ints, frames=no_frames), poses))
+            slot = (slot + 1) % SLOTS
+        conn.send(("end",))
+    except (BrokenPipeError, ConnectionResetError):
+        return  # the parent has gone
+    except BaseException as exc:  # every error is the parent's to report
+        try:
+            conn.send(("error", exc))
+        except Exception:  # an exception that does not pickle
+            conn.send(("error", InputError(f"{path}: {type(exc).__name__}: {exc}")))
+    finally:
+        conn.close()
