@@ -1802,6 +1802,14 @@ class OnlineJoint:
             version=self._version,
         )
 
+    def is_current(self, request: SolveRequest) -> bool:
+        """Whether a :meth:`solve_request` was made in the state the estimator is in now.
+
+        False after a reset, a freeze or a new hinge sign convention: the answer
+        to it, a result or an error, is about a window that is gone.
+        """
+        return request.generation == self._generation and not self._frozen
+
     def install(self, result: SolveResult) -> bool:
         """Make a :func:`solve_window` result of an earlier :meth:`solve_request` the estimate.
 

@@ -33,7 +33,7 @@ from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
 from jointfit_core.errors import JointfitError
-from jointfit_core.estimator import JointOutput
+from jointfit_core.estimator import JointOutput, SolveRequest
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 
 from .conversions import (
@@ -134,6 +134,7 @@ class JointfitNode(Node):
 
         # Timers and services.
         self._solver = SolverProcess() if self.cfg.solver_process else None
+        self._requests: dict[str, SolveRequest] = {}  # the request the worker is answering, by joint
         self._jf_timers: dict[str, Any] = {}
         self._estimate_turn = -1  # the joint the estimate timer solved last
         self._rviz_turn = -1  # the joint whose RViz markers were published last
@@ -259,7 +260,7 @@ class JointfitNode(Node):
         if solver is not None:
             answers = solver.collect()
             for name, result in answers:
-                self.runners[name].install(result)
+                self.runners[name].install(result, self._requests.pop(name, None))
             if not solver.alive:
                 self.get_logger().warning(f"{solver.problem}: solving on the executor thread from now on")
                 self._solver = solver = None  # (the ticks stay twice as frequent: each joint is solved more often)
@@ -271,8 +272,8 @@ class JointfitNode(Node):
             runner.estimate(time.monotonic(), force=True)
         else:
             request = runner.solve_request(time.monotonic(), force=True)
-            if request is not None:
-                solver.submit(runner.cfg.name, request)
+            if request is not None and solver.submit(runner.cfg.name, request):
+                self._requests[runner.cfg.name] = request  # an error answer is dropped if this becomes stale
 
     def _on_local_timer(self) -> None:
         stamp = self._now_ns()

@@ -340,9 +340,16 @@ class JointRunner:
             self._failed(exc)
             return None
 
-    def install(self, result: SolveResult | JointfitError) -> bool:
-        """Make a solve's result the estimate (False when stale: see :meth:`OnlineJoint.install`); count an error."""
+    def install(self, result: SolveResult | JointfitError, request: SolveRequest | None = None) -> bool:
+        """Make a solve's result the estimate (False when stale: see :meth:`OnlineJoint.install`); count an error.
+
+        ``request``: the request answered; an error about a window that is gone
+        (:meth:`OnlineJoint.is_current <jointfit_core.estimator.OnlineJoint.is_current>`:
+        reset or frozen since) is dropped, not counted against the estimator there is now.
+        """
         if isinstance(result, JointfitError):
+            if request is not None and not self.estimator.is_current(request):
+                return False
             self._failed(result)
             return False
         return self.estimator.install(result)

@@ -12,7 +12,9 @@ by a reset, freeze or new frames solved meanwhile). Both processes run the
 same function on the same numbers, so the estimates equal the in-process ones
 bit for bit.
 
-The worker imports numpy, scipy and jointfit_core, not rclpy. It ignores
+The worker starts with the first request (a node that never solves, e.g. one
+that loaded a frozen calibration, never runs it: ~90 MB). It imports numpy,
+scipy and jointfit_core, not rclpy. It ignores
 SIGINT (Ctrl-C in a terminal reaches the whole process group; the node shuts
 it down) and exits when its socket closes, so it never outlives the node, even
 one that was killed. When the worker is gone or stops answering, the node
@@ -50,6 +52,14 @@ class SolverProcess:
     """
 
     def __init__(self) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None  # started by the first submit()
+        self._conn: Connection | None = None
+        self._key: str | None = None  # the joint whose window is being solved
+        self._since = 0.0
+        self.problem = ""
+
+    def _start(self) -> Connection:
+        """Start the worker (on the first request: a node that never solves, e.g. frozen, never pays for it)."""
         ours, theirs = socket.socketpair()
         env = dict(os.environ)
         # the worker imports this checkout of jointfit, whatever the caller's sys.path
@@ -64,9 +74,12 @@ class SolverProcess:
         )
         theirs.close()
         self._conn = Connection(ours.detach())
-        self._key: str | None = None  # the joint whose window is being solved
-        self._since = 0.0
-        self.problem = ""
+        return self._conn
+
+    @property
+    def started(self) -> bool:
+        """Whether the worker process was started (by a first :meth:`submit`)."""
+        return self._proc is not None
 
     @property
     def alive(self) -> bool:
@@ -83,7 +96,8 @@ class SolverProcess:
         if not self.idle:
             return False
         try:
-            self._conn.send((key, request))
+            conn = self._conn if self._conn is not None else self._start()
+            conn.send((key, request))
         except OSError as exc:
             self._fail(f"solver process unreachable ({exc})")
             return False
@@ -92,7 +106,7 @@ class SolverProcess:
 
     def ready(self, timeout: float = 0.0) -> bool:
         """Whether :meth:`collect` has an answer (or the worker's end) to report; waits up to ``timeout`` s."""
-        if not self.alive or self._key is None:
+        if not self.alive or self._key is None or self._conn is None:
             return False
         try:
             return self._conn.poll(timeout)
@@ -102,6 +116,8 @@ class SolverProcess:
     def collect(self) -> list[tuple[str, SolveResult | JointfitError]]:
         """Answers that have arrived (without waiting): ``(key, result or the error the solve raised)``."""
         answers: list[tuple[str, SolveResult | JointfitError]] = []
+        if self._conn is None:
+            return answers
         try:
             while self.alive and self._conn.poll(0):
                 key, answer = self._conn.recv()
@@ -110,7 +126,8 @@ class SolverProcess:
                 answers.append((key, answer))
                 self._key = None
         except (EOFError, OSError) as exc:
-            self._fail(f"solver process ended (exit code {self._proc.poll()}; {exc or 'connection closed'})")
+            code = self._proc.poll() if self._proc is not None else None
+            self._fail(f"solver process ended (exit code {code}; {exc or 'connection closed'})")
         if self._key is not None and time.monotonic() - self._since > SOLVE_TIMEOUT_S:
             self._fail(f"solver process gave no answer in {SOLVE_TIMEOUT_S:g} s")
         return answers
@@ -119,16 +136,21 @@ class SolverProcess:
         """Give the worker up: it is gone or hung, so it is killed at once (no wait on the frames' thread)."""
         self.problem = why
         self._key = None
-        self._conn.close()
-        if self._proc.poll() is None:
-            self._proc.kill()
-        self._proc.wait()
+        if self._conn is not None:
+            self._conn.close()
+        if self._proc is not None:
+            if self._proc.poll() is None:
+                self._proc.kill()
+            self._proc.wait()
 
     def close(self, timeout: float = 2.0) -> None:
         """Stop the worker (closing its socket ends it; killed after ``timeout`` seconds)."""
         if not self.problem:
             self.problem = "closed"
-        self._conn.close()
+        if self._conn is not None:
+            self._conn.close()
+        if self._proc is None:
+            return
         try:
             self._proc.wait(timeout)
         except subprocess.TimeoutExpired:

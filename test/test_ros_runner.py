@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from jointfit_core.errors import InputError
+from jointfit_core.errors import InputError, NotIdentifiableError
 from jointfit_core.estimator import solve_window
 from jointfit_core.synthetic import two_segment_motion
 from jointfit_ros.params import JOINT_PARAMS, NODE_PARAMS, ConfigError, check_value, node_config
@@ -175,6 +175,29 @@ def test_runner_drops_an_answer_for_the_estimator_it_replaced() -> None:
     for k in range(frames.shape[0]):
         before.markers_frame(int(times[k] * 1e9), frames[k])
     assert before.install(solve_window(before.solve_request(force=True)))  # type: ignore[arg-type]
+
+
+def test_runner_drops_an_error_about_a_window_that_is_gone() -> None:
+    """An error answer (the solve raised) counts against the estimator it was about, not its successor."""
+    cfg = node_config(_values(**{"hip.window": 800, "hip.template_frames": 20}))
+    frames, times, _ = _stream("ball", 300, seed=5)
+    error = NotIdentifiableError("the window's motion does not identify the joint")
+    for change in ("reset", "freeze", None):
+        runner = JointRunner(cfg.joints[0], cfg)
+        for k in range(frames.shape[0]):
+            runner.markers_frame(int(times[k] * 1e9), frames[k])
+        request = runner.solve_request(force=True)
+        assert request is not None
+        if change == "reset":
+            runner.reset()
+        elif change == "freeze":
+            runner.estimate(force=True)
+            runner.estimator.freeze()
+        failures = runner.counters["estimate_failures"]
+        assert not runner.install(error, request)
+        assert runner.counters["estimate_failures"] == failures + (change is None), change
+        assert ("does not identify" in runner.last_error) == (change is None), change
+
 
 def test_runner_survives_bad_frames_and_bad_files(tmp_path: Any) -> None:
     broken = tmp_path / "broken.yaml"

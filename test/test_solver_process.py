@@ -10,6 +10,7 @@ the estimator's own exceptions, and a worker that dies must be noticed.
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 import time
 
 import numpy as np
@@ -17,7 +18,7 @@ import pytest
 from numpy.typing import NDArray
 
 from jointfit_core.errors import JointfitError, NotIdentifiableError
-from jointfit_core.estimator import OnlineJoint, SolveResult, solve_window
+from jointfit_core.estimator import OnlineJoint, SolveRequest, SolveResult, solve_window
 from jointfit_core.synthetic import two_segment_motion
 from jointfit_ros.solver_process import SolverProcess
 
@@ -146,22 +147,43 @@ def test_solver_process_returns_the_error(solver: SolverProcess) -> None:
     assert solver.alive and solver.idle
 
 
+def _running(sp: SolverProcess, request: SolveRequest) -> subprocess.Popen[bytes]:
+    """Start the worker (it starts with the first request) and wait for its answer."""
+    assert sp.submit("first", request)
+    assert len(_answer(sp)) == 1
+    assert sp._proc is not None and sp._proc.poll() is None
+    return sp._proc
+
+
+def test_the_worker_starts_with_the_first_request() -> None:
+    sp = SolverProcess()
+    assert not sp.started and sp.alive and sp.idle
+    assert sp.collect() == [] and not sp.ready(0.01)
+    sp.close()  # never started: nothing to stop
+    assert not sp.started and not sp.alive
+    est, _, _ = _joint("ball")
+    request = est.solve_request()
+    assert request is not None
+    sp = SolverProcess()
+    try:
+        proc = _running(sp, request)
+    finally:
+        sp.close()
+    assert proc.poll() is not None and not sp.alive
+
+
 def test_a_dead_worker_is_noticed(solver: SolverProcess) -> None:
     est, _, _ = _joint("ball")
     request = est.solve_request()
     assert request is not None
+    _running(solver, request)
+    assert solver._proc is not None
     solver._proc.kill()
     solver._proc.wait()
     solver.submit("hip", request)  # may still succeed: the socket's buffer takes it
     assert _answer(solver) == []
     assert not solver.alive and not solver.idle and "solver process" in solver.problem
     assert not solver.submit("hip", request)
-
-
-def test_close_ends_the_worker() -> None:
-    sp = SolverProcess()
-    sp.close()
-    assert sp._proc.poll() is not None and not sp.alive
 
 
 # --------------------------------------------------------------------------- in the node
@@ -206,7 +228,7 @@ def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> 
                 frame = frame_at(rigs, k / 100.0, rng, 0.5, 0.0) / 1000.0
                 node._on_markers(pose_array_bytes(10**18 + k * 10**7, "world", frame))
                 if k == kill_worker_at:
-                    assert node._solver is not None
+                    assert node._solver is not None and node._solver._proc is not None
                     node._solver._proc.kill()
                     node._solver._proc.wait()
                 if k % 20 == 19:
@@ -254,10 +276,11 @@ def test_a_hung_worker_is_given_up(solver: SolverProcess, monkeypatch: pytest.Mo
     est, _, _ = _joint("ball")
     request = est.solve_request()
     assert request is not None
+    worker = _running(solver, request)
     monkeypatch.setattr(sp_module, "SOLVE_TIMEOUT_S", 0.2)
-    solver._proc.send_signal(signal.SIGSTOP)  # alive, never answering
+    worker.send_signal(signal.SIGSTOP)  # alive, never answering
     assert solver.submit("hip", request)
     time.sleep(0.3)
     assert solver.collect() == []
     assert not solver.alive and "no answer" in solver.problem
-    assert solver._proc.poll() is not None  # killed, not left stopped
+    assert worker.poll() is not None  # killed, not left stopped
