@@ -49,7 +49,7 @@ from jointfit_core.errors import JointfitError
 
 from .offline import FitRun, run_fit
 from .params import node_config, params_from_file
-from .report import fit_summary, geometries, html_page, joint_figure
+from .report import fit_summary, html_page, joint_reports
 
 __all__ = ["main", "fit_main"]
 
@@ -156,7 +156,7 @@ def fit_main(argv: Sequence[str]) -> int:
             reader_process=False if opts.single_process else None,
             progress=_progress_printer(f"fitting {Path(opts.input).name}") if show else None,
         )
-        geos = geometries(run)
+        geos, figures = ({}, {}) if opts.no_report else joint_reports(run)
         summary = fit_summary(run, elapsed_s=time.perf_counter() - started, version=__version__, geos=geos)
         # Everything is computed before anything is written.
         calibrations: dict[str, dict[str, Any]] = {}
@@ -169,7 +169,6 @@ def fit_main(argv: Sequence[str]) -> int:
                 data.update(dict.fromkeys(("window", "window_s", "half_life", "half_life_s")))
                 data.update(configured[joint["name"]].window_kwargs())
                 calibrations[joint["name"]] = data
-        figures = {} if opts.no_report else {t.runner.cfg.name: joint_figure(run, t, geos) for t in run.traces}
         for joint in summary["joints"]:
             name = joint["name"]
             joint["calibration_file"] = str(out_dir / f"{name}.calibration.yaml") if name in calibrations else None

@@ -28,6 +28,8 @@ from __future__ import annotations
 import html
 import io
 import math
+import multiprocessing
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -39,9 +41,18 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.pose import poses_from_markers
 from jointfit_core.segments import PoseSumsCentre
 
+from .bag_blocks import can_fork
 from .offline import FitRun, JointTrace
 
-__all__ = ["fit_summary", "joint_figure", "html_page", "SegmentGeometry", "geometries", "segment_geometry"]
+__all__ = [
+    "fit_summary",
+    "joint_figure",
+    "joint_reports",
+    "html_page",
+    "SegmentGeometry",
+    "geometries",
+    "segment_geometry",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -253,8 +264,9 @@ def _subsample(n: int, at_most: int) -> NDArray[np.intp]:
     return np.unique(np.linspace(0, n - 1, min(n, at_most)).astype(np.intp)) if n else np.zeros(0, np.intp)
 
 
-#: Time series longer than twice this many points are drawn per bin (median line, maximum dots).
-PLOT_BINS = 400
+#: Time series longer than four times this many points are drawn in this many bins (median line,
+#: maximum dots); shorter ones (e.g. 40 s at 100 Hz) frame by frame.
+PLOT_BINS = 1000
 
 
 def binned(t: FloatArray, y: FloatArray, bins: int = PLOT_BINS) -> tuple[FloatArray, FloatArray, FloatArray] | None:
@@ -265,7 +277,7 @@ def binned(t: FloatArray, y: FloatArray, bins: int = PLOT_BINS) -> tuple[FloatAr
     t, y : ndarray, shape (N,)
         Times (increasing) and values (NaN where undefined).
     bins : int
-        Most runs; ``None`` is returned for series of at most ``2 * bins`` points (drawn as they are).
+        Most runs; ``None`` is returned for series of at most ``4 * bins`` points (drawn as they are).
 
     Returns
     -------
@@ -276,7 +288,7 @@ def binned(t: FloatArray, y: FloatArray, bins: int = PLOT_BINS) -> tuple[FloatAr
         peak, so that a one-sample spike (a label swap) stays as tall as it is.
     """
     n = y.shape[0]
-    if n <= 2 * bins:
+    if n <= 4 * bins:
         return None
     size = -(-n // bins)
     rows = -(-n // size)
@@ -508,6 +520,59 @@ def joint_figure(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeome
     finally:
         plt.close(fig)
     return buf.getvalue()
+
+
+def _one_joint_report(index: int) -> tuple[SegmentGeometry | None, bytes]:
+    """In a forked process: the geometry and the figure of the run's ``index``-th joint (the run inherited)."""
+    run = _FORKED_RUN[0]
+    assert run is not None
+    trace = run.traces[index]
+    geo = segment_geometry(run, trace)
+    return geo, joint_figure(run, trace, {trace.runner.cfg.name: geo})
+
+
+#: The run that :func:`joint_reports` hands to its forked processes (set only while they run).
+_FORKED_RUN: list[FitRun | None] = [None]
+
+
+def joint_reports(run: FitRun, *, parallel: bool | None = None) -> tuple[dict[str, SegmentGeometry | None], dict[str, bytes]]:
+    """Every joint's geometry (:func:`geometries`) and figure (:func:`joint_figure`).
+
+    Parameters
+    ----------
+    run : FitRun
+    parallel : bool, optional
+        One forked process per joint (at most one per CPU), which inherits the
+        run: drawing takes ~1 s per joint for a long recording. Default: when
+        there are several joints and the process may fork
+        (:func:`~jointfit_ros.bag_blocks.can_fork`).
+
+    Returns
+    -------
+    geometries : dict
+        By joint name, as :func:`geometries`.
+    figures : dict
+        By joint name, PNG bytes.
+
+    Raises
+    ------
+    MissingDependencyError
+        matplotlib is not installed.
+    """
+    names = [t.runner.cfg.name for t in run.traces]
+    if parallel is None:
+        parallel = len(names) > 1 and can_fork()
+    if not parallel:
+        geos = geometries(run)
+        return geos, {t.runner.cfg.name: joint_figure(run, t, geos) for t in run.traces}
+    _pyplot()  # imported once, here: the processes inherit it (and a missing matplotlib is said here)
+    _FORKED_RUN[0] = run
+    try:
+        with multiprocessing.get_context("fork").Pool(min(len(names), os.cpu_count() or 1)) as pool:
+            results = pool.map(_one_joint_report, range(len(names)), chunksize=1)
+    finally:
+        _FORKED_RUN[0] = None
+    return {n: g for n, (g, _) in zip(names, results, strict=True)}, {n: f for n, (_, f) in zip(names, results, strict=True)}
 
 
 def html_page(summary: dict[str, Any], images: dict[str, str]) -> str:
