@@ -288,11 +288,20 @@ def select_topics(path: str | os.PathLike[str], topics: Sequence[str]) -> list[B
     MissingDependencyError
         ``rosbags`` is not installed.
     """
+    _check_names(topics)
+    return _select(path, bag_topics(path), topics)
+
+
+def _check_names(topics: Sequence[str]) -> None:
     if isinstance(topics, str | bytes) or not isinstance(topics, Sequence):
         raise InputError(f"topics: expected a sequence of topic names, got {topics!r}")
     if bad := [t for t in topics if not isinstance(t, str) or not t.strip("/")]:
         raise InputError(f"topics: expected non-empty topic names (str), got {bad!r}")
-    available = bag_topics(path)
+
+
+def _select(path: str | os.PathLike[str], available: dict[str, BagTopic], topics: Sequence[str]) -> list[BagTopic]:
+    """:func:`select_topics` among a bag's topics already listed."""
+    _check_names(topics)
     if not topics:
         raise InputError(f"topics: expected at least one topic name; {_listing(available)}")
     by_absolute = {_absolute(name): info for name, info in available.items()}
@@ -359,14 +368,16 @@ def iter_bag_messages(path: str | os.PathLike[str], topics: Sequence[str]) -> It
     return iter_selected_messages(path, selected)
 
 
-def iter_selected_messages(path: str | os.PathLike[str], selected: Sequence[str]) -> Iterator[BagMessage]:
-    """:func:`iter_bag_messages` of topics already checked: the names :func:`select_topics` returned.
+def iter_selected_messages(path: str | os.PathLike[str], topics: Sequence[str]) -> Iterator[BagMessage]:
+    """:func:`iter_bag_messages` with the bag opened once, when the iteration starts.
 
-    The bag is opened once, when the iteration starts (a sqlite3 bag's open
-    counts its messages: ~0.13 s per 100 000). Unknown names select nothing.
-    Raises :class:`InputError` during the iteration for an unreadable bag.
+    A sqlite3 bag's open counts its messages (~0.13 s per 100 000 here), and
+    :func:`iter_bag_messages` opens it twice so as to raise its errors at the
+    call. Here the topics are selected (:func:`select_topics`) on the reader
+    the messages come from: the same errors, raised by the first ``next()``.
     """
     with _OpenBag(path) as reader:
+        selected = {info.name for info in _select(path, _topics_of(reader), topics)}
         conns = [c for c in reader.connections if c.topic in selected]
         try:
             for conn, log_time_ns, raw in reader.messages(connections=conns):

@@ -1,11 +1,13 @@
 """A bag's messages in blocks, optionally read and parsed in a second process while the estimators run.
 
 ROS-free. ``jointfit fit`` reads a bag, parses its marker messages and runs
-the estimators; the first two take about as long as the third. With
-``process=True`` (:func:`parsed_blocks`) a forked child process reads the bag
-and parses each block (:func:`~jointfit_ros.inputs.parse_markers`) while the
-parent routes the previous block to the estimators, so that on two cores the
-wall time is nearer the larger of the two than their sum.
+the estimators; the first two take about as long as the third. A
+:class:`BagReaderProcess` (or :func:`parsed_blocks` with ``process=True``) is
+a forked child that opens the bag at once (while the parent checks the
+topics), then reads and parses each block
+(:func:`~jointfit_ros.inputs.parse_markers`) while the parent routes the
+previous one to the estimators, so that on two cores the wall time is nearer
+the larger of the two than their sum.
 
 The child writes each block's frames, stamps and positions into one of
 ``SLOTS`` slots of an anonymous shared memory map and sends the rest (frame
@@ -22,6 +24,7 @@ a free slot checks the parent every second.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import mmap
 import multiprocessing
 import os
@@ -41,7 +44,7 @@ from .bag import iter_selected_messages
 from .inputs import ParsedMarkers, parse_markers
 from .params import NodeConfig
 
-__all__ = ["Message", "PoseMessage", "can_fork", "parsed_blocks", "split_blocks"]
+__all__ = ["BagReaderProcess", "Message", "PoseMessage", "can_fork", "parsed_blocks", "split_blocks"]
 
 FloatArray = NDArray[np.float64]
 
@@ -118,7 +121,7 @@ def parsed_blocks(
     step, max_block : int
         Block boundaries (:func:`split_blocks`).
     process : bool
-        Read and parse in a forked child process (see the module docstring).
+        Read and parse in a forked child process (:class:`BagReaderProcess`).
 
     Yields
     ------
@@ -136,32 +139,55 @@ def parsed_blocks(
         for block in split_blocks(iter_selected_messages(path, topics), marker_topic, step, max_block):
             yield _parse_block(cfg, block)
         return
-    yield from _ProcessReader(Path(path), topics, marker_topic, cfg, step, max_block).blocks()
+    yield from BagReaderProcess(path, topics, cfg, max_block).blocks(marker_topic, step)
 
 
-class _ProcessReader:
-    """The forked child that reads and parses, and the parent's end of it."""
+class BagReaderProcess:
+    """A forked child that reads a bag and parses its blocks; the parent's end of it.
 
-    def __init__(
-        self, path: Path, topics: Sequence[str], marker_topic: str | None, cfg: NodeConfig, step: int, max_block: int
-    ) -> None:
+    The child opens the bag (a sqlite3 bag's open counts its messages, and its
+    query sorts them: ~0.3 s per 100 000) as soon as it starts, while the
+    parent goes on (checking the topics itself, say); it splits the messages
+    into blocks once :meth:`blocks` gives it the block boundaries.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The bag.
+    topics : sequence of str
+        Topics to read (:func:`~jointfit_ros.bag.iter_selected_messages`: checked in the child,
+        whose errors :meth:`blocks` raises).
+    cfg : NodeConfig
+        For :func:`~jointfit_ros.inputs.parse_markers` (not ``unlabelled``).
+    max_block : int
+        Most messages in a block.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], topics: Sequence[str], cfg: NodeConfig, max_block: int) -> None:
         ctx = multiprocessing.get_context("fork")
-        n = len(cfg.marker_names)
-        self.path = path
-        self.slots = _Slots(max_block, n)
+        self.path = Path(path)
+        self.slots = _Slots(max_block, len(cfg.marker_names))
         self.free = ctx.Semaphore(SLOTS)
-        self.conn, child_end = ctx.Pipe(duplex=False)
+        self.conn, child_end = ctx.Pipe(duplex=True)
         self.proc = ctx.Process(
             target=_serve,
-            args=(child_end, self.slots, self.free, os.getpid(), path, list(topics), marker_topic, cfg, step, max_block),
+            args=(child_end, self.slots, self.free, os.getpid(), self.path, list(topics), cfg, max_block),
             name="jointfit-bag-reader",
             daemon=True,
         )
         self.proc.start()
         child_end.close()
 
-    def blocks(self) -> Iterator[tuple[ParsedMarkers, list[PoseMessage]]]:
+    def blocks(self, marker_topic: str | None, step: int) -> Iterator[tuple[ParsedMarkers, list[PoseMessage]]]:
+        """The blocks, as :func:`parsed_blocks` yields them (``marker_topic`` and ``step`` as there).
+
+        The child stops when the iteration ends, fails or is closed.
+        """
         try:
+            try:
+                self.conn.send((marker_topic, step))
+            except OSError:
+                pass  # the child is gone: its error or exit code is read below
             while True:
                 try:
                     msg = self.conn.recv()
@@ -185,6 +211,7 @@ class _ProcessReader:
             self.close()
 
     def close(self) -> None:
+        """Stop the child (also before :meth:`blocks`)."""
         self.conn.close()
         if self.proc.is_alive():
             self.proc.terminate()
@@ -211,18 +238,20 @@ def _serve(
     parent: int,
     path: Path,
     topics: list[str],
-    marker_topic: str | None,
     cfg: NodeConfig,
-    step: int,
     max_block: int,
 ) -> None:
-    """The child: read, parse, and hand each block over (see the module docstring)."""
+    """The child: open the bag, wait for the block boundaries, read, parse, hand each block over."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     no_frames = np.zeros((0, len(cfg.marker_names), 3))
     no_ints = np.zeros(0, dtype=np.int64)
     slot = 0
     try:
-        for block in split_blocks(iter_selected_messages(path, topics), marker_topic, step, max_block):
+        messages = iter_selected_messages(path, topics)
+        first = next(messages, None)  # open, select, query: while the parent checks the topics
+        marker_topic, step = conn.recv()
+        stream = messages if first is None else itertools.chain([first], messages)
+        for block in split_blocks(stream, marker_topic, step, max_block):
             parsed, poses = _parse_block(cfg, block)
             while not free.acquire(timeout=PARENT_CHECK_S):
                 if os.getppid() != parent:
@@ -231,14 +260,17 @@ def _serve(
             slots.frames[slot, :k] = parsed.frames
             slots.index[slot, :k] = parsed.index
             slots.stamps[slot, :k] = parsed.stamps_ns
-            conn.send(("block", slot, k, dataclasses.replace(parsed, index=no_ints, stamps_ns=no_ints, frames=no_frames), poses))
+            meta = dataclasses.replace(parsed, index=no_ints, stamps_ns=no_ints, frames=no_frames)
+            conn.send(("block", slot, k, meta, poses))
             slot = (slot + 1) % SLOTS
         conn.send(("end",))
-    except (BrokenPipeError, ConnectionResetError):
-        return  # the parent has gone
+    except (BrokenPipeError, ConnectionResetError, EOFError):
+        return  # the parent has gone (or closed this reader before asking for blocks)
     except BaseException as exc:  # every error is the parent's to report
         try:
             conn.send(("error", exc))
+        except (BrokenPipeError, ConnectionResetError):
+            return
         except Exception:  # an exception that does not pickle
             conn.send(("error", InputError(f"{path}: {type(exc).__name__}: {exc}")))
     finally:

@@ -28,7 +28,6 @@ marker frames.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import os
@@ -45,7 +44,7 @@ from jointfit_core.io import MarkerData, read_c3d, read_trc
 from jointfit_core.segments import PoseSumsCentre
 
 from .bag import iter_selected_messages, select_topics
-from .bag_blocks import can_fork, parsed_blocks, split_blocks
+from .bag_blocks import BagReaderProcess, can_fork, parsed_blocks, split_blocks
 from .inputs import MessageRouter, Routed, route_frame
 from .params import ConfigError, NodeConfig
 from .runner import JointRunner
@@ -219,8 +218,8 @@ def _read_markers(path: Path, kind: str, cfg: NodeConfig) -> MarkerData:
     return read_c3d(path) if kind == "c3d" else read_trc(path)
 
 
-def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
-    """The bag topics the configuration reads (checked for presence and type) and their message count."""
+def _wanted_topics(cfg: NodeConfig) -> dict[str, str]:
+    """The topics the configuration reads (as it names them) and their message types."""
     wanted: dict[str, str] = {}
     if any(j.parent_markers or j.child_markers for j in cfg.joints):
         wanted[cfg.marker_topic] = _MARKER_MSGTYPE[cfg.marker_type]
@@ -228,6 +227,12 @@ def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
         for topic in (j.parent_pose_topic, j.child_pose_topic):
             if topic:
                 wanted[topic] = _POSE_MSGTYPE
+    return wanted
+
+
+def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
+    """The bag topics the configuration reads (checked for presence and type) and their message count."""
+    wanted = _wanted_topics(cfg)
     infos = select_topics(path, list(wanted))
     for (name, msgtype), info in zip(wanted.items(), infos, strict=True):
         if info.msgtype != msgtype:
@@ -240,15 +245,27 @@ def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
 
 #: Most messages (frames) parsed and given to the estimators at once; blocks also end at every checkpoint.
 MAX_BLOCK = 4096
+#: Bags from this size on (storage files, bytes) are read in a reader process by default
+#: (~7000 PoseArray messages of 40 markers; a fork costs a few ms).
+READER_PROCESS_MIN_BYTES = 16_000_000
 
 
-def _bag_events(run: FitRun, topics: list[str], step: int, process: bool) -> Generator[int, None, None]:
+def _bag_bytes(path: Path) -> int:
+    """Size of a bag's files, bytes (a bag directory, its metadata.yaml or one storage file)."""
+    folder = path.parent if path.name == "metadata.yaml" else path
+    files = list(folder.iterdir()) if folder.is_dir() else [folder]
+    return sum(f.stat().st_size for f in files if f.is_file())
+
+
+def _bag_events(
+    run: FitRun, topics: list[str], step: int, reader: BagReaderProcess | None
+) -> Generator[int, None, None]:
     """Route every message in blocks; yields the number of messages of each.
 
     A block ends after ``MAX_BLOCK`` messages or when the message count reaches a multiple of ``step``
     (so that checkpoints fall between blocks, where message-by-message routing would take them).
     Marker messages are parsed a block at a time (:func:`~jointfit_ros.bag_blocks.parsed_blocks`,
-    in a second process with ``process``) and routed with
+    or by ``reader`` in its process) and routed with
     :meth:`MessageRouter.route_parsed`; unlabelled clouds and chain joints, which need the
     previous frame, go through :meth:`MessageRouter.route_many`.
     """
@@ -268,7 +285,11 @@ def _bag_events(run: FitRun, topics: list[str], step: int, process: bool) -> Gen
             note(router.route_many(block))
             yield len(block)
         return
-    for parsed, poses in parsed_blocks(run.path, topics, marker_topic, run.cfg, step, MAX_BLOCK, process=process):
+    if reader is not None:
+        blocks = reader.blocks(marker_topic, step)
+    else:
+        blocks = parsed_blocks(run.path, topics, marker_topic, run.cfg, step, MAX_BLOCK, process=False)
+    for parsed, poses in blocks:
         note(router.route_parsed(parsed, poses))
         yield parsed.n + len(poses)
 
@@ -332,9 +353,10 @@ def run_fit(
         ``progress(done, total)`` called about every 1 % of the inputs.
     reader_process : bool, optional
         Bags: read and parse in a second process while the estimators run
-        (:mod:`jointfit_ros.bag_blocks`; the same results). Default: when the
-        bag has more than one block of messages and the process may fork
-        (:func:`~jointfit_ros.bag_blocks.can_fork`).
+        (:class:`~jointfit_ros.bag_blocks.BagReaderProcess`; the same results).
+        Default: for bags of at least ``READER_PROCESS_MIN_BYTES`` when the
+        process may fork (:func:`~jointfit_ros.bag_blocks.can_fork`).
+        Unlabelled clouds and chain joints are always read in this process.
 
     Returns
     -------
@@ -354,18 +376,29 @@ def run_fit(
     """
     file = Path(path)
     kind = input_kind(file)
+    reader: BagReaderProcess | None = None
     if kind == "bag":
-        topics, total = _bag_topics(file, cfg)
         run_cfg = _offline_config(cfg, whole_recording)
         run = FitRun(file, kind, run_cfg, [])
         run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
         run.router = MessageRouter(run_cfg, [t.runner for t in run.traces])
         if keep_frames:
             run.router.recorded = []
-        step = max(1, total // max(n_checkpoints, 1))
+        blockwise = not run_cfg.unlabelled and not any(r.chained for r in run.router.runners)
         if reader_process is None:
-            reader_process = total > MAX_BLOCK and can_fork()
-        events = _bag_events(run, topics, step, reader_process)
+            reader_process = _bag_bytes(file) >= READER_PROCESS_MIN_BYTES and can_fork()
+        if reader_process and blockwise:
+            # The child opens the bag while this process checks the topics (each open of a sqlite3 bag
+            # counts its messages).
+            reader = BagReaderProcess(file, list(_wanted_topics(run_cfg)), run_cfg, MAX_BLOCK)
+        try:
+            topics, total = _bag_topics(file, cfg)
+        except BaseException:
+            if reader is not None:
+                reader.close()
+            raise
+        step = max(1, total // max(n_checkpoints, 1))
+        events = _bag_events(run, topics, step, reader)
     else:
         data = _read_markers(file, kind, cfg)
         total = data.n_frames
@@ -376,13 +409,17 @@ def run_fit(
         events = _marker_events(run, data, step)
     tick = max(1, total // 100)
     done = 0
-    with contextlib.closing(events):  # a reader process stops with the fit, also on an error
+    try:
         for n in events:
             done += n
             if done % step == 0:
                 _checkpoint(run.traces)
             if progress is not None and done // tick > (done - n) // tick:
                 progress(done, total)
+    finally:  # a reader process stops with the fit, also on an error
+        events.close()
+        if reader is not None:
+            reader.close()
     run.n_inputs = done
     for t in run.traces:
         if not t.runner.estimate(force=True):

@@ -63,6 +63,15 @@ def _everything(run: FitRun) -> dict[str, Any]:
     return out
 
 
+def _assert_same(a: dict[str, Any], b: dict[str, Any]) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        if isinstance(a[key], np.ndarray):
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+        else:
+            assert a[key] == b[key], key
+
+
 @pytest.mark.parametrize(
     ("marker_type", "labelled", "extra", "storage"),
     [
@@ -78,12 +87,7 @@ def test_reader_process_fit_is_the_in_process_fit(
     cfg = node_config(_values(marker_topic="/markers", marker_type=marker_type, **extra))
     a = _everything(run_fit(bag, cfg, n_checkpoints=7, reader_process=False))
     b = _everything(run_fit(bag, cfg, n_checkpoints=7, reader_process=True))
-    assert a.keys() == b.keys()
-    for key in a:
-        if isinstance(a[key], np.ndarray):
-            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
-        else:
-            assert a[key] == b[key], key
+    _assert_same(a, b)
     c = a["router"]
     assert c["malformed"] > 0 and c["wrong_frame_id"] > 0 and a["frames"].shape[0] > N - 10
     assert (c["label_problems"] > 0) == labelled
@@ -194,3 +198,36 @@ def test_no_fork_beside_other_threads() -> None:
     finally:
         stop.set()
         thread.join()
+
+
+def test_reader_started_before_the_topics_are_checked_leaves_no_child(tmp_path: Path) -> None:
+    """The reader opens the bag while the fit checks its topics: a bad bag stops both, with one clear line."""
+    bag = _bag(tmp_path, "pose_array", False, "sqlite3")
+    cfg = node_config(_values(marker_topic="/elsewhere"))
+    with pytest.raises(InputError, match="topics not in the bag: /elsewhere") as info:
+        run_fit(bag, cfg, reader_process=True)
+    assert "\n" not in str(info.value)
+    assert multiprocessing.active_children() == []
+    reader = bag_blocks.BagReaderProcess(bag, ["/elsewhere"], cfg, 64)  # the child's own check
+    with pytest.raises(InputError, match="topics not in the bag: /elsewhere"):
+        next(reader.blocks("/elsewhere", 100))
+    assert multiprocessing.active_children() == []
+
+
+def test_default_reader_process_for_large_bags_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    bag = _bag(tmp_path, "pose_array", False, "mcap")
+    cfg = node_config(_values(marker_topic="/markers"))
+    started: list[int] = []
+    real = bag_blocks.BagReaderProcess.__init__
+
+    def spy(self: Any, *args: Any, **kwargs: Any) -> None:
+        started.append(1)
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(bag_blocks.BagReaderProcess, "__init__", spy)
+    small = _everything(run_fit(bag, cfg))
+    assert started == []  # a few hundred kB: not worth a fork
+    monkeypatch.setattr(offline, "READER_PROCESS_MIN_BYTES", 1)
+    large = _everything(run_fit(bag, cfg))
+    assert started == ([1] if bag_blocks.can_fork() else [])
+    _assert_same(small, large)
