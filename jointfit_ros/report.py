@@ -30,6 +30,7 @@ import io
 import math
 import multiprocessing
 import os
+import signal
 from collections.abc import Mapping
 from typing import Any
 
@@ -531,6 +532,10 @@ def _one_joint_report(index: int) -> tuple[SegmentGeometry | None, bytes]:
     return geo, joint_figure(run, trace, {trace.runner.cfg.name: geo})
 
 
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 #: The run that :func:`joint_reports` hands to its forked processes (set only while they run).
 _FORKED_RUN: list[FitRun | None] = [None]
 
@@ -568,7 +573,9 @@ def joint_reports(run: FitRun, *, parallel: bool | None = None) -> tuple[dict[st
     _pyplot()  # imported once, here: the processes inherit it (and a missing matplotlib is said here)
     _FORKED_RUN[0] = run
     try:
-        with multiprocessing.get_context("fork").Pool(min(len(names), os.cpu_count() or 1)) as pool:
+        processes = min(len(names), os.cpu_count() or 1)
+        # Ctrl-C is this process's to handle: leaving the block terminates the workers
+        with multiprocessing.get_context("fork").Pool(processes, initializer=_ignore_sigint) as pool:
             results = pool.map(_one_joint_report, range(len(names)), chunksize=1)
     finally:
         _FORKED_RUN[0] = None
