@@ -13,8 +13,9 @@ The child writes each block's frames, stamps and positions into one of
 ``SLOTS`` slots of an anonymous shared memory map and sends the rest (frame
 ids, problems, pose messages: usually well under the pipe's buffer, so that
 the child does not wait on the parent's reading) through a pipe; the parent
-copies the arrays out and frees the slot. The blocks, and so every number the fit computes, are the
-same as when they are read and parsed in-process (tested).
+copies the arrays out and frees the slot. The blocks, and so every number
+the fit computes, are the same as when they are read and parsed in-process
+(tested).
 
 The child ignores SIGINT (the parent handles it and stops the child), and it
 exits when the parent goes away: a send to a closed pipe fails, and a wait for
@@ -41,17 +42,12 @@ from numpy.typing import NDArray
 from jointfit_core.errors import InputError
 
 from .bag import iter_selected_messages
-from .inputs import ParsedMarkers, parse_markers
+from .inputs import Message, ParsedMarkers, PoseMessage, parse_markers, split_block
 from .params import NodeConfig
 
-__all__ = ["BagReaderProcess", "Message", "PoseMessage", "can_fork", "parsed_blocks", "split_blocks"]
+__all__ = ["BagReaderProcess", "can_fork", "parsed_blocks", "split_blocks"]
 
 FloatArray = NDArray[np.float64]
-
-#: ``(None, raw)`` for a message of the marker topic, ``(topic, raw)`` for one of a pose topic.
-Message = tuple[str | None, bytes]
-#: A pose-topic message of a block: ``(position in the block, topic, raw)``.
-PoseMessage = tuple[int, str, bytes]
 
 #: Shared-memory slots: the child reads and parses up to ``SLOTS - 1`` blocks ahead of the parent.
 SLOTS = 3
@@ -83,8 +79,8 @@ def split_blocks(
 
 
 def _parse_block(cfg: NodeConfig, block: Sequence[Message]) -> tuple[ParsedMarkers, list[PoseMessage]]:
-    parsed = parse_markers(cfg, [raw for topic, raw in block if topic is None])
-    return parsed, [(i, topic, raw) for i, (topic, raw) in enumerate(block) if topic is not None]
+    raws, poses = split_block(block)
+    return parse_markers(cfg, raws), poses
 
 
 def can_fork() -> bool:

@@ -34,10 +34,24 @@ from .raw import (
 )
 from .runner import JointRunner
 
-__all__ = ["MessageRouter", "ParsedMarkers", "Routed", "parse_markers", "route_frame"]
+__all__ = [
+    "Message",
+    "MessageRouter",
+    "ParsedMarkers",
+    "PoseMessage",
+    "Routed",
+    "parse_markers",
+    "route_frame",
+    "split_block",
+]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+#: A message of a block: ``(None, raw)`` for one of the marker topic, ``(topic, raw)`` for one of a pose topic.
+Message = tuple[str | None, bytes]
+#: A pose-topic message of a block: ``(position in the block, topic, raw)``.
+PoseMessage = tuple[int, str, bytes]
 
 #: Why :meth:`MessageRouter.frame` drops a message with infinite coordinates.
 _INF_TEXT = "infinite coordinates (NaN marks an occluded marker; inf is corrupt data)"
@@ -168,6 +182,14 @@ def parse_markers(cfg: NodeConfig, raws: Sequence[bytes]) -> ParsedMarkers:
     )
 
 
+def split_block(messages: Sequence[Message]) -> tuple[list[bytes], list[PoseMessage]]:
+    """A block's marker messages (their bytes, in order) and its pose messages (with their positions)."""
+    return (
+        [raw for topic, raw in messages if topic is None],
+        [(i, topic, raw) for i, (topic, raw) in enumerate(messages) if topic is not None],
+    )
+
+
 def route_frame(runners: Sequence[JointRunner], stamp_ns: int, frame_id: str, frame: FloatArray) -> list[Routed]:
     """Give one parsed marker frame (P, 3) to the joints in order; their outputs.
 
@@ -208,12 +230,21 @@ class MessageRouter:
     recorded : list of (int, ndarray) or None
         When set to a list (the offline fit does, for its report), every
         parsed marker frame is appended as ``(stamp_ns, frame (P, 3))``.
+    chained : bool
+        Some joint takes chain markers: it needs this frame's outputs of the
+        joints before it, so messages are routed one at a time.
+    blockwise : bool
+        Marker messages can be parsed a block at a time, apart from the
+        routing (:func:`parse_markers`, :meth:`route_parsed`): not
+        ``chained`` and not ``unlabelled`` (labelled against the previous frame).
     """
 
     def __init__(self, cfg: NodeConfig, runners: Iterable[JointRunner]) -> None:
         self.cfg = cfg
         self.runners = list(runners)
         self.marker_runners = [r for r in self.runners if r.uses_marker_topic]
+        self.chained = any(r.chained for r in self.marker_runners)
+        self.blockwise = not (self.chained or cfg.unlabelled)
         self.pose_topics: dict[str, list[tuple[JointRunner, int]]] = {}
         for r in self.runners:
             for source, topic in ((0, r.cfg.parent_pose_topic), (1, r.cfg.child_pose_topic)):
@@ -346,7 +377,7 @@ class MessageRouter:
         """Many messages of ``marker_topic``, oldest first: :meth:`markers` of each (see :meth:`route_many`)."""
         return self.route_many([(None, raw) for raw in raws])
 
-    def route_many(self, messages: Sequence[tuple[str | None, bytes]]) -> list[Routed]:
+    def route_many(self, messages: Sequence[Message]) -> list[Routed]:
         """Messages in arrival order: :meth:`markers` or :meth:`pose` of each, the marker frames in one block.
 
         Parameters
@@ -373,17 +404,16 @@ class MessageRouter:
         walked in order for the rest (joints pairing markers with a pose
         topic, pose topics, problems and frame ids), unless there are none.
         """
-        if any(r.chained for r in self.marker_runners):
+        if self.chained:
             # Chain joints need this frame's outputs of the joints before them: one message at a time.
             out: list[Routed] = []
             for topic, raw in messages:
                 out.extend(self.markers(raw) if topic is None else self.pose(topic, raw))
             return out
-        parsed = self._parse_markers([raw for topic, raw in messages if topic is None])
-        poses = [(i, topic, raw) for i, (topic, raw) in enumerate(messages) if topic is not None]
-        return self.route_parsed(parsed, poses)
+        raws, poses = split_block(messages)
+        return self.route_parsed(self._parse_markers(raws), poses)
 
-    def route_parsed(self, parsed: ParsedMarkers, poses: Sequence[tuple[int, str, bytes]] = ()) -> list[Routed]:
+    def route_parsed(self, parsed: ParsedMarkers, poses: Sequence[PoseMessage] = ()) -> list[Routed]:
         """:meth:`route_many` of a block whose marker messages are already parsed.
 
         Parameters
@@ -404,7 +434,7 @@ class MessageRouter:
         ValueError
             A joint takes chain markers (those go through :meth:`route_many`, one message at a time).
         """
-        if any(r.chained for r in self.marker_runners):
+        if self.chained:
             raise ValueError("chain joints are routed one message at a time (route_many)")
         self.counters["messages"] += parsed.n
         self.counters["label_problems"] += parsed.label_problems

@@ -280,7 +280,7 @@ def _bag_events(
             t.output_stamps.append(r.stamp_ns * 1e-9)
             t.residuals.append(r.output.residual)
 
-    if run.cfg.unlabelled or any(r.chained for r in router.runners):
+    if not router.blockwise:
         for block in split_blocks(iter_selected_messages(run.path, topics), marker_topic, step, MAX_BLOCK):
             note(router.route_many(block))
             yield len(block)
@@ -384,10 +384,9 @@ def run_fit(
         run.router = MessageRouter(run_cfg, [t.runner for t in run.traces])
         if keep_frames:
             run.router.recorded = []
-        blockwise = not run_cfg.unlabelled and not any(r.chained for r in run.router.runners)
         if reader_process is None:
             reader_process = _bag_bytes(file) >= READER_PROCESS_MIN_BYTES and can_fork()
-        if reader_process and blockwise:
+        if reader_process and run.router.blockwise:
             # The child opens the bag while this process checks the topics (each open of a sqlite3 bag
             # counts its messages).
             reader = BagReaderProcess(file, list(_wanted_topics(run_cfg)), run_cfg, MAX_BLOCK)
