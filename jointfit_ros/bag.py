@@ -300,8 +300,7 @@ def _check_names(topics: Sequence[str]) -> None:
 
 
 def _select(path: str | os.PathLike[str], available: dict[str, BagTopic], topics: Sequence[str]) -> list[BagTopic]:
-    """:func:`select_topics` among a bag's topics already listed."""
-    _check_names(topics)
+    """:func:`select_topics` among a bag's topics already listed (``topics`` checked by :func:`_check_names`)."""
     if not topics:
         raise InputError(f"topics: expected at least one topic name; {_listing(available)}")
     by_absolute = {_absolute(name): info for name, info in available.items()}
@@ -376,6 +375,7 @@ def iter_selected_messages(path: str | os.PathLike[str], topics: Sequence[str]) 
     call. Here the topics are selected (:func:`select_topics`) on the reader
     the messages come from: the same errors, raised by the first ``next()``.
     """
+    _check_names(topics)
     with _OpenBag(path) as reader:
         selected = {info.name for info in _select(path, _topics_of(reader), topics)}
         conns = [c for c in reader.connections if c.topic in selected]

@@ -47,7 +47,7 @@ from jointfit_core.atomic import write_atomic
 from jointfit_core.calibration import save_calibration
 from jointfit_core.errors import JointfitError
 
-from .offline import FitRun, run_fit
+from .offline import READER_PROCESS_MIN_BYTES, FitRun, run_fit
 from .params import node_config, params_from_file
 from .report import fit_summary, html_page, joint_reports
 
@@ -92,7 +92,7 @@ def _fit_parser() -> argparse.ArgumentParser:
         "--single-process",
         action="store_true",
         help="read and parse a bag in this process (default: in a second process while the estimators run, "
-        "for bags longer than one block; the results are the same)",
+        f"for bags of {READER_PROCESS_MIN_BYTES / 1e6:g} MB or more; the results are the same)",
     )
     shown = p.add_mutually_exclusive_group()
     shown.add_argument("--progress", action="store_true", help="show progress even when stderr is not a terminal")
