@@ -177,10 +177,11 @@ def _fit_poses(y: FloatArray, vis: BoolArray, x: FloatArray) -> Poses:
     ok = _non_collinear(scat_x, n)
     yz = np.where(vis[..., None], y, 0.0)
     ybar = (w[:, None, :] @ yz)[:, 0] / np.where(n > 0, n, 1.0)[:, None]
+    x_ok, y_ok, ybar_ok = xc[ok], yz[ok], ybar[ok]
     # Correlation sum_i x_i y_i^T: x is centred (and zero where unused), so y needs no centring.
-    S = np.swapaxes(xc[ok], 1, 2) @ yz[ok]
-    yy = np.einsum("npi,npi->n", yz[ok], yz[ok]) - n[ok] * np.einsum("ni,ni->n", ybar[ok], ybar[ok])
-    xx = np.einsum("npi,npi->n", xc[ok], xc[ok])
+    S = np.swapaxes(x_ok, 1, 2) @ y_ok
+    yy = np.einsum("npi,npi->n", y_ok, y_ok) - n[ok] * np.einsum("ni,ni->n", ybar_ok, ybar_ok)
+    xx = np.einsum("npi,npi->n", x_ok, x_ok)
     R = np.full((y.shape[0], 3, 3), np.nan)
     R[ok] = rotations_from_correlations(S, 0.5 * (xx + yy))[0]
     d = ybar - (R @ xbar[:, :, None])[:, :, 0]
