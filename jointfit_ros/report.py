@@ -270,6 +270,11 @@ def _subsample(n: int, at_most: int) -> NDArray[np.intp]:
 PLOT_BINS = 1000
 
 
+def _run_length(n: int, bins: int = PLOT_BINS) -> int:
+    """Samples per run when ``n`` samples are cut into at most ``bins`` runs."""
+    return -(-n // bins)
+
+
 def binned(t: FloatArray, y: FloatArray, bins: int = PLOT_BINS) -> tuple[FloatArray, FloatArray, FloatArray] | None:
     """A long series summarised in ``bins`` runs of consecutive samples, for plotting.
 
@@ -291,7 +296,7 @@ def binned(t: FloatArray, y: FloatArray, bins: int = PLOT_BINS) -> tuple[FloatAr
     n = y.shape[0]
     if n <= 4 * bins:
         return None
-    size = -(-n // bins)
+    size = _run_length(n, bins)
     rows = -(-n // size)
     padded = np.full(rows * size, np.nan)
     padded[:n] = y
@@ -305,15 +310,21 @@ def binned(t: FloatArray, y: FloatArray, bins: int = PLOT_BINS) -> tuple[FloatAr
     return mid, median, peak
 
 
-def _plot_series(ax: Any, t: FloatArray, y: FloatArray, style: str, **kw: Any) -> str:
-    """``y`` against ``t``: as it is, or (long series) per-bin medians as ``style`` and maxima as dots; returns which."""
+def _plot_series(
+    ax: Any, t: FloatArray, y: FloatArray, raw: dict[str, Any], median: dict[str, Any], peak: dict[str, Any]
+) -> int:
+    """``y`` against ``t``: as it is (``raw`` line properties), or for a long series (:func:`binned`) the
+    per-run medians (``median``) and maxima (``peak``; the medians' colour unless given).
+
+    Returns the samples per run drawn (1: every sample).
+    """
     b = binned(t, y)
     if b is None:
-        ax.plot(t, y, style, **kw)
-        return "every frame"
-    line = ax.plot(b[0], b[1], style, **kw)[0]
-    ax.plot(b[0], b[2], ".", ms=2, color=line.get_color())
-    return f"median (lines) and maximum (dots) of every {-(-y.shape[0] // PLOT_BINS)} frames"
+        ax.plot(t, y, **raw)
+        return 1
+    line = ax.plot(b[0], b[1], **median)[0]
+    ax.plot(b[0], b[2], **{"color": line.get_color(), **peak})
+    return _run_length(y.shape[0])
 
 
 def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | PoseSumsAxis, names: tuple[str, ...], unit: str) -> None:
@@ -380,10 +391,12 @@ def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | Pose
 
 def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, unit: str) -> None:
     cfg = trace.runner.cfg
-    shown = ""
+    run = 1
     for res, names, style in ((geo.residual_parent, cfg.parent_markers, "-"), (geo.residual_child, cfg.child_markers, "--")):
         for k, name in enumerate(names):
-            shown = _plot_series(ax, geo.t, res[:, k], style, lw=0.8, label=name)
+            line = {"linestyle": style, "lw": 0.8, "label": name}
+            run = _plot_series(ax, geo.t, res[:, k], line, line, {"linestyle": "none", "marker": ".", "ms": 2})
+    shown = "every frame" if run == 1 else f"median (lines) and maximum (dots) of every {run} frames"
     ax.set_xlabel("time (s)")
     ax.set_ylabel(f"marker to posed template ({unit})")
     ax.set_title(f"rigid-body residual per marker (parent solid, child dashed)\n{shown}", fontsize=9)
@@ -397,15 +410,17 @@ def _draw_joint_residual(ax: Any, trace: JointTrace, geo: SegmentGeometry | None
     else:
         t, y = geo.t, geo.joint_residual
         what += ", final estimate"
-    b = binned(t, y)
-    if b is None:
-        ax.plot(t, y, ".", ms=1.5, color="C0")
-        shown = "every frame"
-    else:
-        ax.plot(b[0], b[1], "-", lw=1, color="C0", label="median")
-        ax.plot(b[0], b[2], ".", ms=2, color="C3", label="maximum")
+    run = _plot_series(
+        ax,
+        t,
+        y,
+        {"linestyle": "none", "marker": ".", "ms": 1.5, "color": "C0"},
+        {"linestyle": "-", "lw": 1, "color": "C0", "label": "median"},
+        {"linestyle": "none", "marker": ".", "ms": 2, "color": "C3", "label": "maximum"},
+    )
+    if run > 1:
         ax.legend(fontsize=7, loc="upper right")
-        shown = f"median and maximum of every {-(-y.shape[0] // PLOT_BINS)} frames"
+    shown = "every frame" if run == 1 else f"median and maximum of every {run} frames"
     ax.set_xlabel("time (s)")
     ax.set_ylabel(f"distance ({unit})")
     ax.set_title(f"per-frame joint residual: {what}\n{shown}", fontsize=9)
