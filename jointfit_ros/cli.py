@@ -129,7 +129,7 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
         est += f" sd <= {max(joint['sd_parent']):.2g} {unit}"
     else:
         est = "direction_parent (" + ", ".join(f"{v:.3f}" for v in joint["direction_parent"]) + ")"
-        est += f" sd {joint['direction_sd_deg_parent']:.2g} deg"
+        est += f" sd {joint['direction_sd_deg_parent']:.2g} deg, pointing {joint['axis_points']}"
     verdict = "" if joint["status"] == "ok" else f"; NOT identifiable: {joint['reason']}"
     return f"{name}: {est}, rms {joint['rms_residual']:.3g} {unit}, {joint['frames_in_window']} frames{verdict}"
 

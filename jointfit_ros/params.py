@@ -208,6 +208,16 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         minimum=0.0,
         runtime=True,
     ),
+    ParamSpec(
+        "workspace",
+        "double",
+        0.0,
+        "Half-width of the capture volume in metres (converted by units): a marker with a coordinate beyond it "
+        "is treated as missing and counted, and no output beyond it is published; 0 (default): no limit (markers "
+        "far outside their segment are still treated as missing).",
+        minimum=0.0,
+        runtime=True,
+    ),
 )
 
 JOINT_PARAMS: tuple[ParamSpec, ...] = (
@@ -284,8 +294,32 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "axis_toward_marker",
         "string",
         "",
-        "Hinge sign: the axis direction points toward the side of this marker (any name from marker_names); "
-        "empty: the parent-frame axis with the largest component is positive.",
+        "Hinge sign: the axis direction points toward this marker (any name from marker_names): from "
+        "axis_from_marker when that is set, else from the clusters' centre (only when the marker lies beyond "
+        "both clusters along the axis; otherwise the diagnostics say it is ambiguous). Chosen once, from the "
+        "first identifiable estimate with a direction sd below 5 deg; empty: the parent-frame axis with the "
+        "largest component is positive.",
+    ),
+    ParamSpec(
+        "axis_from_marker",
+        "string",
+        "",
+        "Hinge sign with axis_toward_marker: the axis points from this marker toward that one (e.g. from the "
+        "medial to the lateral epicondyle), whatever the clusters' positions; empty: the one-marker form.",
+    ),
+    ParamSpec(
+        "publish_unidentified",
+        "bool",
+        False,
+        "Publish the per-frame outputs while the joint is not identifiable, with their covariance widened along "
+        "what the motion leaves undetermined; false (default): no per-frame output until it is identifiable.",
+    ),
+    ParamSpec(
+        "freeze_unidentified",
+        "bool",
+        False,
+        "Let `~/freeze` and `~/save` accept an estimate that is not identifiable (and load such a calibration); "
+        "false (default): they refuse it, with the reason.",
     ),
     ParamSpec(
         "local_frame_id",
@@ -323,6 +357,9 @@ class JointConfig:
     calibration_file: str
     axis_toward_marker: str
     local_frame_id: str
+    axis_from_marker: str = ""
+    publish_unidentified: bool = False
+    freeze_unidentified: bool = False
 
     def window_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of :class:`jointfit_core.estimator.OnlineJoint` for the window."""
@@ -357,6 +394,7 @@ class NodeConfig:
     sync_tolerance: float
     ellipsoid_sigma: float
     joints: tuple[JointConfig, ...]
+    workspace: float = 0.0
 
     def marker_index(self, name: str) -> int:
         """Row of a marker in the marker frame."""
@@ -474,6 +512,14 @@ def _joint_config(
         if v[f"{side}_pose_topic"] and (v["pose_translation_sd"] <= 0.0 or v["pose_rotation_sd_deg"] <= 0.0):
             raise ConfigError(f"{name}: pose inputs need pose_translation_sd > 0 and pose_rotation_sd_deg > 0")
     marker = v["axis_toward_marker"]
+    from_marker = v["axis_from_marker"]
+    if from_marker:
+        if not marker:
+            raise ConfigError(f"{name}.axis_from_marker: needs axis_toward_marker too")
+        if from_marker not in known:
+            raise ConfigError(f"{name}.axis_from_marker: expected a name from marker_names, got {from_marker!r}")
+        if from_marker == marker:
+            raise ConfigError(f"{name}.axis_from_marker: must differ from axis_toward_marker ({marker!r})")
     if marker:
         if v["type"] != "hinge":
             raise ConfigError(f"{name}.axis_toward_marker: only for hinges (type is {v['type']!r})")
@@ -503,6 +549,9 @@ def _joint_config(
         calibration_file=v["calibration_file"],
         axis_toward_marker=marker,
         local_frame_id=v["local_frame_id"] or f"{name}_parent",
+        axis_from_marker=from_marker,
+        publish_unidentified=v["publish_unidentified"],
+        freeze_unidentified=v["freeze_unidentified"],
     )
 
 
@@ -561,6 +610,7 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         sync_tolerance=v["sync_tolerance"],
         ellipsoid_sigma=v["ellipsoid_sigma"],
         joints=configs,
+        workspace=v["workspace"],
     )
 
 

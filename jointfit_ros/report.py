@@ -168,7 +168,10 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
         "malformed_frames": r.counters["malformed"],
         "unmatched_inputs": r.counters["unmatched"],
         "dropped": dict(sorted(est.dropped.items())),
+        "absurd_markers": r.counters["absurd_markers"],
     }
+    if r.cfg.type == "hinge":
+        out["axis_points"] = r.axis_words()
     if sol is None:
         out["status"] = "no estimate"
         out["message"] = r.last_error or est.status() or "too few frames"

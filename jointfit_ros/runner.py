@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from jointfit_core.axis_sign import SIGN_SD_MAX_DEG, direction_sd_deg, hinge_sign
 from jointfit_core.calibration import load_calibration, save_calibration
 from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
 from jointfit_core.estimator import (
@@ -31,7 +32,7 @@ from jointfit_core.estimator import (
     virtual_markers_template,
 )
 from jointfit_core.hinge_from_sums import PoseSumsAxis
-from jointfit_core.segments import PoseSumsCentre
+from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .params import JointConfig, NodeConfig
 from .sync import StampMatcher
@@ -81,6 +82,64 @@ class Status:
     values: dict[str, Any]
 
 
+#: A marker farther than this many template rms radii from its segment's mean is absurd (a broken value).
+ABSURD_RADII = 20.0
+
+#: Without a workspace, no output beyond this (input units: 1e9 mm or m) or with a larger sd is published.
+ABSURD_OUTPUT = 1e9
+
+#: The runner's counters (see :class:`JointRunner`).
+_COUNTERS = (
+    "frames", "outputs", "malformed", "unmatched", "estimate_failures", "absurd_markers", "absurd_outputs",
+    "withheld_unidentified",
+)
+
+
+def workspace_limit(node: NodeConfig) -> float:
+    """The ``workspace`` half-width in input units (inf when off or the units are unknown)."""
+    metres = _METRES.get(node.units, 0.0)
+    return node.workspace / metres if node.workspace > 0.0 and metres > 0.0 else math.inf
+
+
+def _lever(sol: PoseSumsCentre | PoseSumsAxis) -> float:
+    """The estimate's distance from the template centroids (input units)."""
+    if isinstance(sol, PoseSumsCentre):
+        return float(max(np.linalg.norm(sol.centre_parent), np.linalg.norm(sol.centre_child)))
+    return float(max(np.linalg.norm(sol.point_parent), np.linalg.norm(sol.point_child)))
+
+
+def widened_output(out: JointOutput, lever: float) -> JointOutput:
+    """A not-identifiable estimate's output with a covariance that covers what the motion left undetermined.
+
+    The position covariance gets at least the identifiability limit
+    (:data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm) in every
+    direction and a whole lever arm along its least-determined direction
+    (a joint moved about one axis is anywhere along it, within the segment);
+    a hinge direction gets at least
+    :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG` about both perpendicular axes.
+    The estimate itself is unchanged.
+    """
+    cov = out.cov
+    finite = bool(np.isfinite(cov).all())
+    v = np.linalg.eigh(cov)[1][:, -1] if finite else np.zeros(3)
+    cov = cov + (SD_REL_MAX * lever) ** 2 * np.eye(3) + lever**2 * np.outer(v, v)
+    cov_direction = out.cov_direction
+    if out.direction is not None and cov_direction is not None:
+        d = out.direction
+        cov_direction = cov_direction + np.radians(AXIS_SD_MAX_DEG) ** 2 * (np.eye(3) - np.outer(d, d))
+    return JointOutput(out.kind, out.position, cov, out.direction, cov_direction, out.residual)
+
+
+def output_sane(out: JointOutput, limit: float) -> bool:
+    """Whether an output may be published: finite, within ``limit`` (input units; inf: :data:`ABSURD_OUTPUT`), its sd below it."""
+    arrays = [out.position, out.cov] + ([out.direction, out.cov_direction] if out.direction is not None else [])
+    if not all(a is not None and np.isfinite(a).all() for a in arrays):
+        return False
+    if not math.isfinite(limit):
+        limit = ABSURD_OUTPUT
+    return bool(np.abs(out.position).max() <= limit and np.diag(out.cov).max() <= limit**2)
+
+
 def _spread_deg(deficit: float) -> float:
     return float(np.rad2deg(np.sqrt(2.0 * max(deficit, 0.0))))
 
@@ -125,14 +184,18 @@ class JointRunner:
             noise = (sigma if cfg.parent_pose_topic else None, sigma if cfg.child_pose_topic else None)
         self._template_args = templates
         self._noise_args = noise
-        self.counters = {"frames": 0, "outputs": 0, "malformed": 0, "unmatched": 0, "estimate_failures": 0}
+        self.counters = dict.fromkeys(_COUNTERS, 0)
         self.last_error = ""
         self.loaded_from: str = ""
         self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
         self._last_solve = -math.inf
         self._sign_fixed = not cfg.axis_toward_marker
+        self.sign_text = ""  # which way the hinge axis points, in words (set when the sign is chosen)
+        self.sign_problem = ""  # why a configured sign convention cannot be honoured
         self._toward_row = node.marker_index(cfg.axis_toward_marker) if cfg.axis_toward_marker else -1
+        self._from_row = node.marker_index(cfg.axis_from_marker) if cfg.axis_from_marker else -1
+        self._cluster_rows = np.concatenate([self.parent_rows, self.child_rows])
         self.estimator = self._new_estimator()
         self._load()
 
@@ -175,8 +238,18 @@ class JointRunner:
             )
             self._unloadable = True
             return
+        sol = est.solution
+        if sol is not None and not sol.identifiable and not self.cfg.freeze_unidentified:
+            self.last_error = (
+                f"calibration file {path} not loaded (kept as it is): its estimate is not identifiable "
+                f"({sol.reason}); set {self.cfg.name}.freeze_unidentified to use it"
+            )
+            self._unloadable = True
+            return
         self.estimator = est
         self._sign_fixed = True  # the saved estimate carries its sign
+        if self.cfg.axis_toward_marker:
+            self.sign_text = f"{self._sign_words()} (as saved in {path})"
         self.loaded_from = str(path)
 
     # ------------------------------------------------------------------ inputs
@@ -190,6 +263,7 @@ class JointRunner:
         position (a virtual marker for ``parent_chain`` / ``child_chain``;
         missing when that joint has no output in this frame).
         """
+        frame = self._in_workspace(frame)
         if self.chained:
             parent = self._with_chain(frame[self.parent_rows], self.cfg.parent_chain, chain or {})
             child = self._with_chain(frame[self.child_rows], self.cfg.child_chain, chain or {})
@@ -223,6 +297,7 @@ class JointRunner:
         """
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
         n = stamps_ns.shape[0]
+        frames = self._in_workspace(frames)
         if self.matcher is not None:
             for k in range(n):
                 self.markers_frame(int(stamps_ns[k]), frames[k])
@@ -230,7 +305,7 @@ class JointRunner:
         parent, child = frames[:, self.parent_rows], frames[:, self.child_rows]
         est = self.estimator
         k = 0
-        while k < n and not self._sign_fixed and est.solution is not None:
+        while k < n and not self._sign_fixed and est.solution is not None and est.solution.identifiable:
             self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
             k += 1
         if k == n:
@@ -247,7 +322,53 @@ class JointRunner:
         self.counters["frames"] += n - k
         self._stamps.extend(stamps[-_RATE_SAMPLES:].tolist())
         if with_outputs:
-            self.counters["outputs"] += (est.n_frames_seen - seen) - (est.dropped.get("parent_not_posed", 0) - not_posed)
+            posed = (est.n_frames_seen - seen) - (est.dropped.get("parent_not_posed", 0) - not_posed)
+            self.counters["outputs" if self._publishable() else "withheld_unidentified"] += posed
+
+    def _in_workspace(self, frames: FloatArray) -> FloatArray:
+        """``frames`` (..., P, 3) with absurd markers set missing (a copy when any is); counted.
+
+        Absurd: a coordinate beyond the ``workspace`` (when set), or a marker
+        farther from its segment's visible markers' mean than
+        :data:`ABSURD_RADII` times the larger template's rms radius (once the
+        templates exist): no swap, ghost or skin motion puts a marker there,
+        only a broken value (a finite 1e299 from a driver). One such marker
+        drags the mean of its segment, so its neighbours may go with it in
+        that frame: the segment is then not posed there.
+        """
+        limit = workspace_limit(self.node)
+        scale = ABSURD_RADII * self.estimator.length_scale
+        out: NDArray[np.bool_] | None = None
+        with np.errstate(invalid="ignore", over="ignore"):
+            if math.isfinite(limit):
+                out = np.asarray((np.abs(frames[..., self._cluster_rows, :]) > limit).any(axis=-1))
+            if scale > 0.0:
+                for rows in (self.parent_rows, self.child_rows):
+                    y = frames[..., rows, :]
+                    seen = ~np.isnan(y[..., :1])
+                    centre = np.where(seen, y, 0.0).sum(axis=-2, keepdims=True) / np.maximum(
+                        seen.sum(axis=-2, keepdims=True), 1
+                    )
+                    # (an infinite value is left to the estimator, which refuses the frame as malformed)
+                    far = np.asarray((np.abs(y - centre) > scale).any(axis=-1) & np.isfinite(centre).all(axis=-1))
+                    far &= ~np.isinf(y).any(axis=-1)
+                    if far.any():
+                        part = np.zeros(frames.shape[:-1], dtype=bool)
+                        part[..., rows] = far
+                        part = part[..., self._cluster_rows]
+                        out = part if out is None else out | part
+        if out is None or not out.any():
+            return frames
+        frames = frames.copy()
+        where = np.zeros(frames.shape[:-1], dtype=bool)
+        where[..., self._cluster_rows] = out
+        frames[where] = np.nan
+        self.counters["absurd_markers"] += int(out.sum())
+        self.last_error = (
+            f"{int(out.sum())} absurd marker position(s) (beyond the workspace or far outside their segment) "
+            "treated as missing"
+        )
+        return frames
 
     @staticmethod
     def _with_chain(markers: FloatArray, names: tuple[str, ...], chain: dict[str, FloatArray]) -> FloatArray:
@@ -259,6 +380,10 @@ class JointRunner:
     def pose(self, source: int, stamp_ns: int, R: FloatArray, d: FloatArray) -> JointOutput | None:
         """A rigid-body pose of the parent (``source`` 0) or the child (1), as virtual markers."""
         assert self._virtual is not None
+        if not np.abs(d).max() <= workspace_limit(self.node):
+            self.counters["absurd_markers"] += 1
+            self.last_error = f"pose dropped: position {d.tolist()} beyond the workspace"
+            return None
         return self._paired(source, stamp_ns, self._virtual @ R.T + d, None)
 
     def _paired(self, source: int, stamp_ns: int, points: FloatArray, frame: FloatArray | None) -> JointOutput | None:
@@ -288,24 +413,75 @@ class JointRunner:
             return None
         self.counters["frames"] += 1
         self._stamps.append(stamp)
-        if out is not None and not self._sign_fixed and frame is not None:
+        if out is None:
+            return None
+        if not self._publishable():
+            self.counters["withheld_unidentified"] += 1
+            return None
+        if not self._sign_fixed and frame is not None:
             out = self._fix_sign(out, frame)
-        if out is not None:
-            self.counters["outputs"] += 1
+        sol = self.estimator.solution
+        if sol is not None and not sol.identifiable:
+            out = widened_output(out, max(self.estimator.length_scale, _lever(sol)))
+        if not output_sane(out, workspace_limit(self.node)):
+            self.counters["absurd_outputs"] += 1
+            self.last_error = f"output withheld: non-finite or beyond the workspace (position {out.position.tolist()})"
+            return None
+        self.counters["outputs"] += 1
         return out
 
-    def _fix_sign(self, out: JointOutput, frame: FloatArray) -> JointOutput:
-        """Point the hinge axis toward ``axis_toward_marker`` once, then keep that sign."""
+    def _publishable(self) -> bool:
+        """Whether per-frame outputs go out: the estimate is identifiable, or ``publish_unidentified``."""
         sol = self.estimator.solution
-        marker = frame[self._toward_row]
-        if not isinstance(sol, PoseSumsAxis) or out.direction is None or np.isnan(marker).any():
+        return sol is not None and (sol.identifiable or self.cfg.publish_unidentified)
+
+    def axis_words(self) -> str:
+        """Which way the hinge axis points, in words (or that the sign is not chosen yet)."""
+        if self.sign_text:
+            return self.sign_text
+        if self.cfg.axis_toward_marker:
+            return f"not chosen yet ({self._sign_words()} once identifiable, direction sd < {SIGN_SD_MAX_DEG:g} deg)"
+        return "default: largest parent-frame component positive"
+
+    def _sign_words(self) -> str:
+        if self.cfg.axis_from_marker:
+            return f"from {self.cfg.axis_from_marker} toward {self.cfg.axis_toward_marker}"
+        return f"toward {self.cfg.axis_toward_marker} (beyond the clusters along the axis)"
+
+    def _fix_sign(self, out: JointOutput, frame: FloatArray) -> JointOutput:
+        """Point the hinge axis by the marker convention once, from an identified estimate; then keep that sign.
+
+        Until the estimate is identifiable with a direction sd below
+        :data:`~jointfit_core.axis_sign.SIGN_SD_MAX_DEG`, nothing is chosen
+        (an unconverged direction can be anything); a convention that
+        cannot be honoured (:func:`~jointfit_core.axis_sign.hinge_sign`) is
+        reported in :attr:`sign_problem` and the default sign stays.
+        """
+        sol = self.estimator.solution
+        if not isinstance(sol, PoseSumsAxis) or out.direction is None or out.cov_direction is None:
             return out
-        side = float(out.direction @ (marker - out.position))
-        sign = -1.0 if side < 0.0 else 1.0
-        self.estimator.set_reference_direction(sign * sol.direction_parent)
+        if not sol.identifiable or not direction_sd_deg(sol.cov_direction_parent) < SIGN_SD_MAX_DEG:
+            return out
+        names = (self.cfg.axis_toward_marker, self.cfg.axis_from_marker)
+        choice = hinge_sign(
+            out.position,
+            out.direction,
+            frame[self._toward_row],
+            frame[self._from_row] if self._from_row >= 0 else None,
+            None if self._from_row >= 0 else frame[self._cluster_rows],
+            names,
+        )
+        if not choice.final:
+            return out
         self._sign_fixed = True
+        if choice.sign == 0.0:
+            self.sign_problem = choice.reason
+            self.sign_text = "default (largest parent-frame component positive): " + choice.reason
+            return out
+        self.sign_text = self._sign_words()
+        self.estimator.set_reference_direction(choice.sign * sol.direction_parent)
         self.estimate(force=True)
-        if sign < 0.0 and out.cov_direction is not None:
+        if choice.sign < 0.0:
             out = JointOutput(out.kind, out.position, out.cov, -out.direction, out.cov_direction, out.residual)
         return out
 
@@ -371,6 +547,7 @@ class JointRunner:
         """Forget the window, templates and estimate (the calibration file is untouched)."""
         self.estimator = self._new_estimator()
         self._sign_fixed = not self.cfg.axis_toward_marker
+        self.sign_text = self.sign_problem = ""
         if self.matcher is not None:
             self.matcher.clear()
         for key in self.counters:
@@ -389,8 +566,25 @@ class JointRunner:
         if not on:
             self.estimator.thaw()
             return f"{self.cfg.name}: estimating"
+        self._check_usable("freeze")
         self.estimator.freeze()
         return f"{self.cfg.name}: frozen"
+
+    def _check_usable(self, action: str) -> None:
+        """Refuse to freeze or save an estimate that is not identifiable, or whose hinge sign is not chosen yet."""
+        sol = self.estimator.solution
+        if sol is None:
+            return  # the estimator says why (no estimate yet)
+        if not sol.identifiable and not self.cfg.freeze_unidentified:
+            raise JointfitError(
+                f"the estimate is not identifiable ({sol.reason}); set {self.cfg.name}.freeze_unidentified to "
+                f"{action} it anyway"
+            )
+        if not self._sign_fixed:
+            raise JointfitError(
+                f"the hinge sign ({self._sign_words()}) is not chosen yet: it waits for an identifiable estimate "
+                f"with a direction sd below {SIGN_SD_MAX_DEG:g} deg and a frame with the marker(s) visible"
+            )
 
     def save(self) -> str:
         """Write the calibration file atomically; returns its path.
@@ -410,6 +604,7 @@ class JointRunner:
         path = self.calibration_path
         if path is None:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
+        self._check_usable("save")
         data = self.estimator.to_dict()
         kept = ""
         if self._unloadable and path.exists():
@@ -440,7 +635,12 @@ class JointRunner:
             "malformed frames": self.counters["malformed"],
             "unmatched inputs": self.counters["unmatched"],
             "estimate failures": self.counters["estimate_failures"],
+            "outputs withheld (not identifiable)": self.counters["withheld_unidentified"],
+            "absurd markers (treated as missing)": self.counters["absurd_markers"],
+            "outputs withheld (non-finite or beyond the workspace)": self.counters["absurd_outputs"],
         }
+        if self.cfg.type == "hinge":
+            values["axis points"] = self.axis_words()
         for reason, count in sorted(est.dropped.items()):
             values[f"dropped: {reason}"] = count
         if self.loaded_from:
@@ -475,10 +675,19 @@ class JointRunner:
         else:
             values["direction_parent"] = np.round(sol.direction_parent, 6).tolist()
             values["point_parent"] = np.round(sol.point_parent, 6).tolist()
+            values["direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
+            values["point sd (max)"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
         if not sol.identifiable:
-            return Status(WARN, f"not identifiable: {sol.reason}", values)
+            outputs = (
+                "per-frame outputs published with a widened covariance (publish_unidentified)"
+                if self.cfg.publish_unidentified
+                else "no per-frame output until it is"
+            )
+            return Status(WARN, f"not identifiable ({outputs}): {sol.reason}", values)
         if units:
             return Status(WARN, units, values)
+        if self.sign_problem:
+            return Status(WARN, f"hinge sign convention not honoured: {self.sign_problem}", values)
         if self.last_error and (self.counters["malformed"] or self.counters["estimate_failures"]):
             return Status(OK, f"{'frozen' if est.frozen else 'estimating'}; last problem: {self.last_error}", values)
         return Status(OK, "frozen" if est.frozen else "estimating", values)

@@ -59,7 +59,8 @@ def _params(path: Path, calibration: Path) -> Path:
       parent_markers: [FEMUR1, FEMUR2, FEMUR3, FEMUR4]
       child_markers: [SHANK1, SHANK2, SHANK3, SHANK4]
       template_frames: 30
-      axis_toward_marker: SHANK1
+      axis_toward_marker: FEMUR1
+      axis_from_marker: FEMUR4
 """
     path.write_text(text)
     return path

@@ -39,7 +39,7 @@ T0 = 1_700_000_000_000_000_000
 
 def _values(**extra: Any) -> dict[str, Any]:
     return fake_rig_values(
-        **{"hip.window": 400, "knee.window_s": 3.0, "knee.axis_toward_marker": "SHANK1", **extra}
+        **{"hip.window": 400, "knee.window_s": 3.0, "knee.axis_toward_marker": "FEMUR2", "knee.axis_from_marker": "FEMUR4", **extra}
     )
 
 
@@ -166,7 +166,7 @@ def test_markers_many_equals_markers(marker_type: str, labelled: bool, extra: di
     _assert_same(a, b)
     c = b["router"]
     assert c["malformed"] > 0 and c["wrong_frame_id"] > 0 and c["messages"] == len(stream)
-    assert b["knee.reference"] is not None  # the sign was fixed toward SHANK1 on the way
+    assert b["knee.reference"] is not None  # the sign was fixed from FEMUR4 toward FEMUR2 on the way
     assert b["hip.dropped"].get("stamp_not_increasing", 0) > 0
     if labelled:
         assert c["label_problems"] > 0

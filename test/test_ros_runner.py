@@ -213,20 +213,24 @@ def test_runner_survives_bad_frames_and_bad_files(tmp_path: Any) -> None:
     assert runner.status().level in (WARN, STALE)
 
 
-def test_hinge_sign_points_toward_the_named_marker() -> None:
+def test_hinge_sign_from_a_cluster_marker_is_ambiguous() -> None:
+    """A cluster's own marker lies within the clusters' extent along the axis: no sign is claimed from it.
+
+    (The markers' side of an axis point near the clusters flips with where the
+    clusters sit; test_honesty.py checks the from -> toward form.)
+    """
     frames, times, _ = _stream("hinge", 600, seed=3)
     for marker in ("C0", "C3", "P1"):
         cfg = node_config(
             _values(**{"hip.type": "hinge", "hip.axis_toward_marker": marker, "hip.template_frames": 20})
         )
         runner = JointRunner(cfg.joints[0], cfg)
-        row = NAMES.index(marker)
         for k in range(frames.shape[0]):
-            out = runner.markers_frame(int(times[k] * 1e9), frames[k])
+            runner.markers_frame(int(times[k] * 1e9), frames[k])
             runner.estimate(times[k])
-            if out is not None and k > 300:
-                assert out.direction is not None
-                assert out.direction @ (frames[k, row] - out.position) > 0.0, marker
+        st = runner.status()
+        assert st.level == WARN and "ambiguous" in st.message, marker
+        assert st.values["axis points"].startswith("default"), marker
 
 
 def test_pose_inputs_are_paired_by_stamp() -> None:
