@@ -24,6 +24,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -44,6 +45,7 @@ from .conversions import (
     pose_with_covariance_bytes,
     stamp_from_ns,
 )
+from .guard import CallbackGuard
 from .inputs import MessageRouter, Routed
 from .params import (
     JOINT_PARAMS,
@@ -54,8 +56,9 @@ from .params import (
     ParamSpec,
     check_value,
     node_config,
+    range_text,
 )
-from .runner import OK, WARN, JointRunner
+from .runner import ERROR, OK, WARN, JointRunner
 from .solver_process import SolverProcess
 
 __all__ = ["JointfitNode", "main"]
@@ -67,21 +70,14 @@ _ROS_TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,
     "string_array": ParameterType.PARAMETER_STRING_ARRAY,
 }
-_PARAM_TYPES = {
-    "string": Parameter.Type.STRING,
-    "int": Parameter.Type.INTEGER,
-    "double": Parameter.Type.DOUBLE,
-    "bool": Parameter.Type.BOOL,
-    "string_array": Parameter.Type.STRING_ARRAY,
-}
-
-
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
-    text = spec.description
+    text = spec.description + range_text(spec)
     if spec.choices:
         text += f" One of: {', '.join(spec.choices)}."
+    # Dynamic typing: rclpy would refuse an integer for a double (and any wrong type) with a traceback
+    # at start; jointfit's own checks (check_value) accept 1 for 1.0 and name the parameter otherwise.
     return ParameterDescriptor(
-        type=_ROS_TYPES[spec.kind], description=text, read_only=not spec.runtime, dynamic_typing=False
+        type=_ROS_TYPES[spec.kind], description=text, read_only=not spec.runtime, dynamic_typing=True
     )
 
 
@@ -96,6 +92,7 @@ class JointfitNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("jointfit", **kwargs)
+        self.guard = CallbackGuard(self.get_logger().error)
         self.cfg: NodeConfig = node_config(self._declare_parameters())
         reliability = (
             ReliabilityPolicy.RELIABLE if self.cfg.qos_reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
@@ -128,9 +125,13 @@ class JointfitNode(Node):
         self._last_outputs: dict[str, tuple[int, str, JointOutput]] = {}
         if self.router.marker_runners:
             msg_type = PoseArray if self.cfg.marker_type == "pose_array" else PointCloud2
-            self.create_subscription(msg_type, self.cfg.marker_topic, self._on_markers, qos, raw=True)
+            self.create_subscription(
+                msg_type, self.cfg.marker_topic, self.guard.wrap("markers", self._on_markers), qos, raw=True
+            )
         for topic in self.router.pose_topics:
-            self.create_subscription(PoseStamped, topic, self._pose_callback(topic), qos, raw=True)
+            self.create_subscription(
+                PoseStamped, topic, self.guard.wrap(f"pose {topic}", self._pose_callback(topic)), qos, raw=True
+            )
 
         # Timers and services.
         self._solver = SolverProcess() if self.cfg.solver_process else None
@@ -139,10 +140,10 @@ class JointfitNode(Node):
         self._estimate_turn = -1  # the joint the estimate timer solved last
         self._rviz_turn = -1  # the joint whose RViz markers were published last
         self._make_timers()
-        self.create_service(Trigger, "~/reset", self._on_reset)
-        self.create_service(SetBool, "~/freeze", self._on_freeze)
-        self.create_service(Trigger, "~/save", self._on_save)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.create_service(Trigger, "~/reset", self.guard.wrap_service("~/reset", self._on_reset))
+        self.create_service(SetBool, "~/freeze", self.guard.wrap_service("~/freeze", self._on_freeze))
+        self.create_service(Trigger, "~/save", self.guard.wrap_service("~/save", self._on_save))
+        self.add_on_set_parameters_callback(self._on_set_parameters_guarded)
         self.get_logger().info(
             f"estimating {', '.join(f'{j.name} ({j.type})' for j in self.cfg.joints)} from "
             f"{self.cfg.marker_topic if self.router.marker_runners else 'pose topics'}"
@@ -151,10 +152,8 @@ class JointfitNode(Node):
     # ------------------------------------------------------------------ parameters
 
     def _declare(self, name: str, spec: ParamSpec) -> Any:
-        if spec.kind == "string_array":
-            param = self.declare_parameter(name, _PARAM_TYPES["string_array"], _descriptor(spec))
-        else:
-            param = self.declare_parameter(name, spec.default, _descriptor(spec))
+        # string arrays: no default value (rclpy cannot type an empty list); check_value gives [] for None
+        param = self.declare_parameter(name, None if spec.kind == "string_array" else spec.default, _descriptor(spec))
         return param.value
 
     def _declare_parameters(self) -> dict[str, Any]:
@@ -166,6 +165,13 @@ class JointfitNode(Node):
                 full = f"{joint}.{spec.name}"
                 values[full] = self._declare(full, spec)
         return values
+
+    def _on_set_parameters_guarded(self, params: list[Parameter]) -> SetParametersResult:
+        try:
+            return self._on_set_parameters(params)
+        except Exception as exc:  # refuse the change rather than end the node
+            self.guard.caught("parameters", exc)
+            return SetParametersResult(successful=False, reason=f"internal error: {type(exc).__name__}: {exc}")
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate run-time changes with the same checks as at start; apply them when all pass."""
@@ -188,26 +194,36 @@ class JointfitNode(Node):
             self._make_timers()
         return SetParametersResult(successful=True)
 
-    def _make_timers(self) -> None:
-        for timer in self._jf_timers.values():
-            self.destroy_timer(timer)
-        self._jf_timers = {
+    def _timer_periods(self) -> dict[str, tuple[float, Callable[[], None]]]:
+        """Each timer's period (s; 0: off) and callback, from the current parameters."""
+        n = max(1, len(self.runners))
+        return {
             # one joint per tick, in turn: each joint is re-solved every estimate_period, and no
             # tick blocks the frame callbacks for more than one joint's solve; with the solver
             # process, sending a window and installing an answer take a tick each
-            "estimate": self.create_timer(
-                self.cfg.estimate_period / max(1, len(self.runners)) / (1 if self._solver is None else 2),
-                self._on_estimate_timer,
-            ),
-            "diagnostics": self.create_timer(self.cfg.diagnostics_period, self._on_diagnostics_timer),
-        }
-        if self.cfg.local_rate > 0:
-            self._jf_timers["local"] = self.create_timer(1.0 / self.cfg.local_rate, self._on_local_timer)
-        if self.cfg.rviz_rate > 0:
+            "estimate": (self.cfg.estimate_period / n / (1 if self._solver is None else 2), self._on_estimate_timer),
+            "diagnostics": (self.cfg.diagnostics_period, self._on_diagnostics_timer),
+            "local": (1.0 / self.cfg.local_rate if self.cfg.local_rate > 0 else 0.0, self._on_local_timer),
             # one joint's markers per tick, in turn (each joint at rviz_rate): shorter ticks on the frames' thread
-            self._jf_timers["rviz"] = self.create_timer(
-                1.0 / self.cfg.rviz_rate / max(1, len(self.runners)), self._on_rviz_timer
-            )
+            "rviz": (1.0 / self.cfg.rviz_rate / n if self.cfg.rviz_rate > 0 else 0.0, self._on_rviz_timer),
+        }
+
+    def _make_timers(self) -> None:
+        """Create, re-arm (a changed period) or destroy (0: off) the timers; an unchanged one is left alone.
+
+        Re-arming instead of re-creating: a burst of parameter changes must not
+        pile up timers on the clock (rclpy warns for each beyond a few hundred).
+        """
+        for name, (period, callback) in self._timer_periods().items():
+            timer = self._jf_timers.get(name)
+            period_ns = round(period * 1e9)
+            if period_ns <= 0:
+                if timer is not None:
+                    self.destroy_timer(self._jf_timers.pop(name))
+            elif timer is None:
+                self._jf_timers[name] = self.create_timer(period, self.guard.wrap(f"{name} timer", callback))
+            elif timer.timer_period_ns != period_ns:
+                timer.timer_period_ns = period_ns
 
     # ------------------------------------------------------------------ inputs
 
@@ -333,6 +349,9 @@ class JointfitNode(Node):
         }
         problems = ("malformed", "label_problems", "wrong_frame_id")
         level = WARN if any(self.counters[k] for k in problems) else OK
+        node_values["unexpected errors (callbacks)"] = self.guard.count
+        if self.guard.count:
+            node_values["last unexpected error"] = self.guard.last
         message = "receiving" if self.counters["messages"] else f"waiting for {self.cfg.marker_topic}"
         if self.counters["malformed"]:
             message += f"; {self.counters['malformed']} malformed messages dropped"
@@ -341,6 +360,9 @@ class JointfitNode(Node):
                 f"; {self.counters['wrong_frame_id']} messages from a frame_id other than "
                 f"{self.cfg.input_frame_id!r} dropped"
             )
+        if self.guard.count:
+            level = ERROR if self.guard.recent else max(level, WARN)
+            message += f"; {self.guard.count} unexpected error(s), last: {self.guard.last}"
         arr.status.append(diagnostic_status("jointfit: input", level, message, node_values))
         for name, runner in self.runners.items():
             st = runner.status()
@@ -414,7 +436,7 @@ def main(args: list[str] | None = None) -> None:
     try:
         try:
             node = JointfitNode()
-        except ConfigError as exc:
+        except (ConfigError, ParameterException) as exc:
             print(f"jointfit_node: invalid parameters: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
         executor = _executor()

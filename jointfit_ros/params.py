@@ -63,6 +63,10 @@ class ParamSpec:
         Smallest allowed number.
     runtime : bool
         Whether it may be changed while the node runs (the others are read-only).
+    maximum : float, optional
+        Largest allowed number (what timers, integer nanoseconds and memory can honour).
+    nonzero_minimum : float, optional
+        Smallest allowed number other than 0 (for rates where 0 means off).
     """
 
     name: str
@@ -72,6 +76,8 @@ class ParamSpec:
     choices: tuple[str, ...] | None = None
     minimum: float | None = None
     runtime: bool = False
+    maximum: float | None = None
+    nonzero_minimum: float | None = None
 
 
 NODE_PARAMS: tuple[ParamSpec, ...] = (
@@ -113,6 +119,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "assignment (input units, m for ROS).",
         minimum=0.0,
         runtime=True,
+        maximum=1e6,
     ),
     ParamSpec(
         "zero_is_missing",
@@ -128,7 +135,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "Reliability of the input subscriptions: best_effort (sensor data) or reliable.",
         choices=("best_effort", "reliable"),
     ),
-    ParamSpec("qos_depth", "int", 10, "Queue depth of the input subscriptions (messages).", minimum=1),
+    ParamSpec("qos_depth", "int", 10, "Queue depth of the input subscriptions (messages).", minimum=1, maximum=10000),
     ParamSpec(
         "world_frame",
         "string",
@@ -160,6 +167,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "the joints take turns within the period.",
         minimum=0.001,
         runtime=True,
+        maximum=3600.0,
     ),
     ParamSpec(
         "solver_process",
@@ -175,6 +183,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "Rate (Hz) of `<joint>/centre_local` and `<joint>/axis_local`; 0 disables them.",
         minimum=0.0,
         runtime=True,
+        maximum=1000.0, nonzero_minimum=1e-3,
     ),
     ParamSpec(
         "rviz_rate",
@@ -183,6 +192,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "Rate (Hz) of each joint's `~/markers` (RViz MarkerArray, one joint per message in turn); 0 disables them.",
         minimum=0.0,
         runtime=True,
+        maximum=100.0, nonzero_minimum=1e-3,
     ),
     ParamSpec(
         "diagnostics_period",
@@ -191,6 +201,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "Seconds between /diagnostics messages.",
         minimum=0.01,
         runtime=True,
+        maximum=3600.0,
     ),
     ParamSpec(
         "sync_tolerance",
@@ -199,6 +210,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "Largest stamp difference (s) to pair parent and child data from different topics.",
         minimum=0.0,
         runtime=True,
+        maximum=10.0,
     ),
     ParamSpec(
         "ellipsoid_sigma",
@@ -207,6 +219,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "Size of the RViz covariance ellipsoids in standard deviations.",
         minimum=0.0,
         runtime=True,
+        maximum=100.0,
     ),
     ParamSpec(
         "workspace",
@@ -217,6 +230,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "far outside their segment are still treated as missing).",
         minimum=0.0,
         runtime=True,
+        maximum=1e6,
     ),
 )
 
@@ -255,6 +269,7 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         0.0005,
         "Pose inputs: standard deviation of the pose position per axis (input units, m for ROS).",
         minimum=0.0,
+        maximum=1e6,
     ),
     ParamSpec(
         "pose_rotation_sd_deg",
@@ -262,18 +277,39 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         0.2,
         "Pose inputs: standard deviation of the pose orientation per axis (degrees).",
         minimum=0.0,
+        maximum=180.0,
     ),
-    ParamSpec("window", "int", 3000, "Sliding window length in frames (used when window_s and half_life_s are 0).", minimum=3),
-    ParamSpec("window_s", "double", 0.0, "Sliding window length in seconds of stamp time; 0: use window.", minimum=0.0),
+    ParamSpec(
+        "window",
+        "int",
+        3000,
+        "Sliding window length in frames (used when window_s and half_life_s are 0).",
+        minimum=3,
+        maximum=1_000_000,
+    ),
+    ParamSpec(
+        "window_s",
+        "double",
+        0.0,
+        "Sliding window length in seconds of stamp time; 0: use window.",
+        minimum=0.0,
+        maximum=3600.0,
+    ),
     ParamSpec(
         "half_life_s",
         "double",
         0.0,
         "Exponential forgetting instead of a window: a frame's weight halves every half_life_s seconds; 0: off.",
         minimum=0.0,
+        maximum=86400.0,
     ),
     ParamSpec(
-        "template_frames", "int", 50, "Fully visible frames averaged into each segment's template.", minimum=1
+        "template_frames",
+        "int",
+        50,
+        "Fully visible frames averaged into each segment's template.",
+        minimum=1,
+        maximum=10_000,
     ),
     ParamSpec(
         "outlier_gate",
@@ -282,6 +318,7 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "Outlier gate: a segment whose rms marker residual exceeds this many times its noise estimate loses its "
         "worst marker (down to 3) or is not posed in that frame (swaps, ghosts, jumps); 0: off.",
         minimum=0.0,
+        maximum=1e3,
     ),
     ParamSpec(
         "calibration_file",
@@ -441,6 +478,10 @@ def check_value(spec: ParamSpec, value: Any, full_name: str | None = None) -> An
         value = float(value)
     if spec.minimum is not None and value < spec.minimum:
         raise ConfigError(f"{name}: expected a value >= {spec.minimum:g}, got {value!r}")
+    if spec.maximum is not None and value > spec.maximum:
+        raise ConfigError(f"{name}: expected a value <= {spec.maximum:g}, got {value!r}")
+    if spec.nonzero_minimum is not None and value != 0 and value < spec.nonzero_minimum:
+        raise ConfigError(f"{name}: expected 0 (off) or a value >= {spec.nonzero_minimum:g}, got {value!r}")
     return value
 
 
@@ -624,6 +665,19 @@ def _default_text(spec: ParamSpec) -> str:
     return f"`{spec.default}`"
 
 
+def range_text(spec: ParamSpec) -> str:
+    """The allowed range of a numeric parameter in words (empty for others), e.g. `` Range: 0 or 0.001-1000.``."""
+    if spec.minimum is None and spec.maximum is None:
+        return ""
+    low = "" if spec.minimum is None else f"{spec.minimum:g}"
+    if spec.nonzero_minimum is not None:
+        low = f"0 or {spec.nonzero_minimum:g}"
+    high = "" if spec.maximum is None else f"{spec.maximum:g}"
+    if low and high:
+        return f" Range: {low} to {high}."
+    return f" Range: >= {low}." if low else f" Range: <= {high}."
+
+
 def parameters_markdown() -> str:
     """The parameter tables of the README (generated from the specs, so that they stay true)."""
     lines = ["| parameter | type | default | run-time | meaning |", "|---|---|---|---|---|"]
@@ -631,13 +685,16 @@ def parameters_markdown() -> str:
         choices = f" One of: {', '.join(spec.choices)}." if spec.choices else ""
         lines.append(
             f"| `{spec.name}` | {spec.kind} | {_default_text(spec)} | {'yes' if spec.runtime else 'no'} | "
-            f"{spec.description}{choices} |"
+            f"{spec.description}{choices}{range_text(spec)} |"
         )
     lines += ["", "Per joint, under its name (`hip.type`, ...):", ""]
     lines += ["| parameter | type | default | meaning |", "|---|---|---|---|"]
     for spec in JOINT_PARAMS:
         choices = f" One of: {', '.join(spec.choices)}." if spec.choices else ""
-        lines.append(f"| `<joint>.{spec.name}` | {spec.kind} | {_default_text(spec)} | {spec.description}{choices} |")
+        lines.append(
+            f"| `<joint>.{spec.name}` | {spec.kind} | {_default_text(spec)} | {spec.description}{choices}"
+            f"{range_text(spec)} |"
+        )
     return "\n".join(lines) + "\n"
 
 

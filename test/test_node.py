@@ -183,7 +183,8 @@ def test_node_end_to_end(client: _Client, tmp_path: Path) -> None:
     proc = _start_node(params)
     try:
         assert client.spin_until(lambda: client.pub.get_subscription_count() > 0, 30.0), "node not discovered"
-        _stream(client, rigs, rng, t0, int(6 * RATE), 0.0)
+        # 8 s: no output until a joint is identifiable (~3.5 s of this motion)
+        _stream(client, rigs, rng, t0, int(8 * RATE), 0.0)
         assert client.spin_until(lambda: len(client.hip) > 500 and len(client.knee) > 500, 10.0)
         err, e3, sd = _hip_errors(client, rigs, t0)
         assert err < 10.0 and sd < 10.0, (err, sd)
@@ -195,10 +196,10 @@ def test_node_end_to_end(client: _Client, tmp_path: Path) -> None:
         # Malformed input: garbage bytes, too many points, all-NaN, a stamp going backwards.
         n_outputs = len(client.hip)
         client.pub.publish(b"\x00\x01\x00\x00garbage")
-        client.pub.publish(pose_array_bytes(int((t0 + 6.5) * 1e9), "world", np.zeros((40, 3))))
-        client.pub.publish(pose_array_bytes(int((t0 + 6.6) * 1e9), "world", np.full((16, 3), np.nan)))
+        client.pub.publish(pose_array_bytes(int((t0 + 8.5) * 1e9), "world", np.zeros((40, 3))))
+        client.pub.publish(pose_array_bytes(int((t0 + 8.6) * 1e9), "world", np.full((16, 3), np.nan)))
         client.pub.publish(pose_array_bytes(int((t0 + 1.0) * 1e9), "world", frame_at(rigs, 1.0, rng, 0.5, 0.0) / 1e3))
-        _stream(client, rigs, rng, t0, int(RATE), 7.0)
+        _stream(client, rigs, rng, t0, int(RATE), 9.0)
         assert client.spin_until(lambda: len(client.hip) > n_outputs + 100, 10.0), "no outputs after bad input"
         assert client.spin_until(lambda: int(client.status("input").get("malformed messages", "0")) >= 2, 5.0)
         assert client.spin_until(lambda: "dropped: stamp_not_increasing" in client.status("hip"), 5.0)
