@@ -13,11 +13,16 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
-__all__ = ["write_atomic"]
+__all__ = ["write_atomic", "remove_stale_temporaries", "STALE_TEMPORARY_S"]
+
+#: A temporary file of :func:`write_atomic` older than this (s) belongs to a write that died.
+STALE_TEMPORARY_S = 5.0
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -93,3 +98,33 @@ def write_atomic(path: str | os.PathLike[str], content: bytes | str, *, keep_bac
         raise
     _fsync_dir(target.parent)
     return target
+
+
+def remove_stale_temporaries(path: str | os.PathLike[str], older_than_s: float = STALE_TEMPORARY_S) -> list[Path]:
+    """Delete the temporary files that writes of ``path`` killed mid-way left beside it; return them.
+
+    Only :func:`write_atomic`'s own names for this target
+    (``.<name>.XXXXXXXX.tmp`` and ``.<name>.XXXXXXXX.bak.tmp``, from
+    :func:`tempfile.mkstemp`), only in its directory, and only those not
+    modified for ``older_than_s`` seconds (a write under way elsewhere keeps
+    its file). A SIGKILL during a write never leaves a partial target, but it
+    leaves such a file, and they accumulate.
+    """
+    target = Path(path)
+    pattern = re.compile(rf"^\.{re.escape(target.name)}\.[A-Za-z0-9_]{{8}}(\.bak)?\.tmp$")
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(target.parent))
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        if not pattern.match(entry.name):
+            continue
+        try:
+            if entry.is_file(follow_symlinks=False) and now - entry.stat(follow_symlinks=False).st_mtime > older_than_s:
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+        except OSError:
+            continue
+    return removed

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -650,6 +651,38 @@ def solve_window(request: SolveRequest) -> SolveResult:
 
 
 # --------------------------------------------------------------------------- the estimator
+
+
+def _check_saved_solution(sol: PoseSumsCentre | PoseSumsAxis, template_size: float) -> None:
+    """Refuse a saved estimate that no fit could have made: non-finite, a negative variance, absurdly far.
+
+    Raises
+    ------
+    InputError
+    """
+    missing = [f for f in sol.__dataclass_fields__ if getattr(sol, f) is None]
+    if missing:
+        raise InputError(f"calibration: the estimate has no {', '.join(missing)}")
+    arrays = {f: np.asarray(getattr(sol, f)) for f in sol.__dataclass_fields__ if isinstance(getattr(sol, f), np.ndarray)}
+    bad = [f for f, a in arrays.items() if not np.isfinite(a).all()]
+    if bad or not math.isfinite(sol.rms) or sol.rms < 0.0:
+        raise InputError(f"calibration: the estimate is not finite ({', '.join(bad) or 'rms'})")
+    for f, a in arrays.items():
+        if f.startswith("cov") and (a.ndim != 2 or a.shape[0] != a.shape[1] or (np.diag(a) < 0.0).any()):
+            raise InputError(f"calibration: the estimate's {f} is not a covariance (negative variance or shape {a.shape})")
+        if f.startswith("direction") and abs(float(np.linalg.norm(a)) - 1.0) > 1e-6:
+            raise InputError(f"calibration: the estimate's {f} is not a unit vector (norm {np.linalg.norm(a):.6g})")
+    limit = _SAVED_REACH * max(template_size, 1e-300)
+    for f in ("centre_parent", "centre_child", "point_parent", "point_child"):
+        if f in arrays and float(np.abs(arrays[f]).max()) > limit:
+            raise InputError(
+                f"calibration: the estimate's {f} is {np.abs(arrays[f]).max():.3g} from its template, more than "
+                f"{_SAVED_REACH:g} times the template's size"
+            )
+
+
+#: A saved joint farther from its segment than this many template sizes is refused as absurd.
+_SAVED_REACH = 1000.0
 
 
 class OnlineJoint:
@@ -1981,7 +2014,10 @@ class OnlineJoint:
                 est._solution = fit_from_dict(PoseSumsCentre, fit)
             else:
                 est._solution = fit_from_dict(PoseSumsAxis, fit)
+            _check_saved_solution(est._solution, max(float(np.abs(tp).max()), float(np.abs(tc).max())))
             est._sigma = (float(data["noise_std_parent"]), float(data["noise_std_child"]))
+            if not all(math.isfinite(v) and v > 0.0 for v in est._sigma):
+                raise InputError(f"calibration: the noise sds {est._sigma} are not finite positive numbers")
             serial = data.get("serial_inflation")  # absent from calibrations saved before it existed
             est._serial = None if serial is None else _serial_from_dict(serial)
             est._world_cache = {}

@@ -101,6 +101,8 @@ class JointfitNode(Node):
 
         self.runners = {j.name: JointRunner(j, self.cfg) for j in self.cfg.joints}
         for name, runner in self.runners.items():
+            for note in runner.load_notes:
+                self.get_logger().info(f"{name}: {note}")
             if runner.loaded_from:
                 self.get_logger().info(f"{name}: calibration loaded from {runner.loaded_from}; starting frozen")
             elif runner.last_error:

@@ -628,6 +628,16 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
     for j in joints:
         done[j] = _joint_config(j, values, names, done)
     configs = tuple(done.values())
+    files: dict[str, str] = {}
+    for c in configs:
+        if c.calibration_file:
+            key = os.path.normpath(os.path.expanduser(c.calibration_file))
+            if key in files:
+                raise ConfigError(
+                    f"{c.name}.calibration_file: {c.calibration_file!r} is also {files[key]}'s; each joint needs a "
+                    "file of its own (saves would overwrite each other)"
+                )
+            files[key] = c.name
     if not names and any(c.parent_markers or c.child_markers for c in configs):
         raise ConfigError("marker_names: expected the names of the points of marker_topic, got none")
     return NodeConfig(

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from jointfit_core.atomic import remove_stale_temporaries
 from jointfit_core.axis_sign import SIGN_SD_MAX_DEG, direction_sd_deg, hinge_sign
 from jointfit_core.calibration import load_calibration, save_calibration
 from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
@@ -140,6 +141,18 @@ def output_sane(out: JointOutput, limit: float) -> bool:
     return bool(np.abs(out.position).max() <= limit and np.diag(out.cov).max() <= limit**2)
 
 
+def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
+    """The window and estimator settings of a calibration file that differ from the configuration, in words."""
+    wanted = {"window": None, "window_s": None, "half_life_s": None, **cfg.window_kwargs()}
+    configured = {**wanted, "template_frames": cfg.template_frames, "gate": cfg.outlier_gate}
+    notes = []
+    for key, value in configured.items():
+        saved = data.get(key)
+        if saved != value and not (saved is None and value in (None, 0.0)):
+            notes.append(f"the calibration's {key} is {saved!r}, the configuration's {value!r}: the file's is used")
+    return notes
+
+
 def _spread_deg(deficit: float) -> float:
     return float(np.rad2deg(np.sqrt(2.0 * max(deficit, 0.0))))
 
@@ -187,6 +200,7 @@ class JointRunner:
         self.counters = dict.fromkeys(_COUNTERS, 0)
         self.last_error = ""
         self.loaded_from: str = ""
+        self.load_notes: list[str] = []  # said once at start: settings of the file that differ, files cleaned
         self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
         self._last_solve = -math.inf
@@ -222,35 +236,79 @@ class JointRunner:
         return Path(self.cfg.calibration_file).expanduser() if self.cfg.calibration_file else None
 
     def _load(self) -> None:
+        """Load the configured calibration file, when it exists and is valid for this joint.
+
+        A file that is not valid (not a regular file, not UTF-8 or YAML, a
+        newer version, non-finite or absurd values, another joint's, made for
+        other markers, not identifiable) is kept untouched and named in
+        :attr:`last_error`; the joint then estimates. Stale temporaries of
+        killed saves are removed first; settings that differ from the
+        configuration are listed in :attr:`load_notes`.
+        """
         path = self.calibration_path
-        if path is None or not path.exists():
+        if path is None:
             return
-        try:
-            est = OnlineJoint.from_dict(load_calibration(path))
-        except (InputError, OSError) as exc:
-            self.last_error = f"calibration file {path} not loaded (kept as it is): {exc}"
+        removed = remove_stale_temporaries(path)
+        if removed:
+            self.load_notes.append(f"removed {len(removed)} stale temporary file(s) of killed saves beside {path}")
+        if not path.exists():
+            return
+        problem = ""
+        est: OnlineJoint | None = None
+        if not path.is_file():
+            problem = "it is not a regular file"
+        else:
+            try:
+                data = load_calibration(path)
+                problem = self._foreign(data)
+                if not problem:
+                    est = OnlineJoint.from_dict(data)
+            except (InputError, OSError, UnicodeDecodeError) as exc:
+                problem = str(exc)
+        if est is not None and not problem:
+            problem = self._unusable(est)
+        if problem or est is None:
+            self.last_error = f"calibration file {path} not loaded (kept as it is): {problem}"
             self._unloadable = True
             return
-        if est.kind != self.cfg.type:
-            self.last_error = (
-                f"calibration file {path} not loaded (kept as it is): it holds a {est.kind} joint, "
-                f"this joint is a {self.cfg.type}"
-            )
-            self._unloadable = True
-            return
-        sol = est.solution
-        if sol is not None and not sol.identifiable and not self.cfg.freeze_unidentified:
-            self.last_error = (
-                f"calibration file {path} not loaded (kept as it is): its estimate is not identifiable "
-                f"({sol.reason}); set {self.cfg.name}.freeze_unidentified to use it"
-            )
-            self._unloadable = True
-            return
+        self.load_notes += _settings_differences(data, self.cfg)
         self.estimator = est
         self._sign_fixed = True  # the saved estimate carries its sign
         if self.cfg.axis_toward_marker:
             self.sign_text = f"{self._sign_words()} (as saved in {path})"
         self.loaded_from = str(path)
+
+    def _identity(self) -> dict[str, Any]:
+        """What a calibration file records of the joint it was made for (checked on load)."""
+        return {
+            "joint": self.cfg.name,
+            "parent_markers": list(self.cfg.parent_markers) + [f"chain:{j}" for j in self.cfg.parent_chain],
+            "child_markers": list(self.cfg.child_markers) + [f"chain:{j}" for j in self.cfg.child_chain],
+            "parent_pose_topic": self.cfg.parent_pose_topic,
+            "child_pose_topic": self.cfg.child_pose_topic,
+        }
+
+    def _foreign(self, data: dict[str, Any]) -> str:
+        """Why a calibration's recorded identity is not this joint's (empty when it is, or records none)."""
+        mine = self._identity()
+        for key, value in mine.items():
+            if key in data and data[key] != value:
+                return f"it was made for {key} {data[key]!r}, this joint has {value!r}"
+        return ""
+
+    def _unusable(self, est: OnlineJoint) -> str:
+        """Why a loaded estimator cannot serve this joint (empty when it can)."""
+        if est.kind != self.cfg.type:
+            return f"it holds a {est.kind} joint, this joint is a {self.cfg.type}"
+        wanted = self._new_estimator().n_markers
+        if est.n_markers != wanted:
+            return f"it was made for {est.n_markers} markers (parent, child), this joint has {wanted}"
+        sol = est.solution
+        if sol is not None and not sol.identifiable and not self.cfg.freeze_unidentified:
+            return (
+                f"its estimate is not identifiable ({sol.reason}); set {self.cfg.name}.freeze_unidentified to use it"
+            )
+        return ""
 
     # ------------------------------------------------------------------ inputs
 
@@ -606,6 +664,7 @@ class JointRunner:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
         self._check_usable("save")
         data = self.estimator.to_dict()
+        data.update(self._identity())
         kept = ""
         if self._unloadable and path.exists():
             aside = path.with_name(f"{path.name}.unloadable-{time.strftime('%Y%m%d-%H%M%S')}")

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from jointfit_core.atomic import STALE_TEMPORARY_S
 from jointfit_core.calibration import load_calibration, save_calibration
 from jointfit_core.estimator import OnlineJoint
 from jointfit_core.synthetic import two_segment_motion
@@ -146,6 +147,31 @@ def test_node_killed_during_saves_reloads(tmp_path: Path) -> None:
             # Every save of a node that started frozen from the file writes the same estimate.
             est = OnlineJoint.from_dict(saved)
             assert est.frozen and saved["estimate"] == original["estimate"]
+        # The kills leave temporaries beside the file; a node started later removes them (its own
+        # pattern only, once they are STALE_TEMPORARY_S old), and touches nothing else.
+        (tmp_path / "notes.txt").write_text("mine")
+        time.sleep(STALE_TEMPORARY_S + 0.5)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "jointfit_ros.node", "--ros-args", "--params-file", str(params)],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )
+        try:
+            assert client.wait_for_service(timeout_sec=30.0)
+            # the killed node's service may linger in the graph: the new node has started (and
+            # cleaned up) once it answers
+            end = time.monotonic() + 30.0
+            answered = False
+            while time.monotonic() < end and not answered:
+                future = client.call_async(Trigger.Request())
+                executor.spin_until_future_complete(future, timeout_sec=2.0)
+                answered = future.done() and future.result().success
+            assert answered, "the new node never answered ~/save"
+        finally:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=10)
+        left = sorted(p.name for p in tmp_path.iterdir())
+        assert left == ["hip.yaml", "hip.yaml.bak", "notes.txt", "params.yaml"], left
+        assert load_calibration(calibration)["estimate"] == original["estimate"]
     finally:
         executor.shutdown()
         node.destroy_node()
