@@ -45,6 +45,7 @@ from .conversions import (
     pose_with_covariance_bytes,
     stamp_from_ns,
 )
+from .graph import graph_problems
 from .guard import CallbackGuard
 from .inputs import MessageRouter, Routed
 from .params import (
@@ -365,11 +366,30 @@ class JointfitNode(Node):
         if self.guard.count:
             level = ERROR if self.guard.recent else max(level, WARN)
             message += f"; {self.guard.count} unexpected error(s), last: {self.guard.last}"
+        graph = self._graph_problems()
+        if graph:
+            level = max(level, WARN)
+            message += "; " + "; ".join(graph)
+            node_values["graph problems"] = " | ".join(graph)
         arr.status.append(diagnostic_status("jointfit: input", level, message, node_values))
         for name, runner in self.runners.items():
             st = runner.status()
             arr.status.append(diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values))
         self._diag_pub.publish(arr)
+
+    def _graph_problems(self) -> list[str]:
+        """Same-name nodes and wrong-type publishers on the inputs (:func:`~jointfit_ros.graph.graph_problems`); logged once each."""
+        marker_type = "geometry_msgs/msg/PoseArray" if self.cfg.marker_type == "pose_array" else "sensor_msgs/msg/PointCloud2"
+        expected = {self.resolve_topic_name(t): "geometry_msgs/msg/PoseStamped" for t in self.router.pose_topics}
+        if self.router.marker_runners:
+            expected[self.resolve_topic_name(self.cfg.marker_topic)] = marker_type
+        publishers = {t: [i.topic_type for i in self.get_publishers_info_by_topic(t)] for t in expected}
+        problems = graph_problems(
+            self.get_node_names_and_namespaces(), (self.get_name(), self.get_namespace()), publishers, expected
+        )
+        for text in problems:
+            self._warn_once(f"graph:{text}", text)
+        return problems
 
     def destroy_node(self) -> None:
         if self._solver is not None:

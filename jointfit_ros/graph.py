@@ -1,0 +1,57 @@
+"""Who else is on the ROS graph: a second node of the same name, a publisher of the wrong type.
+
+Pure functions of what rclpy's graph queries return, so that they are tested
+without ROS. ROS 2 does not keep node names unique: a second ``jointfit``
+started with the same name and namespace publishes every output again and
+answers the same services (two ``~/save`` writing the same files). A
+publisher of another message type on the marker topic never delivers a
+message to the node, which would otherwise only say "waiting for markers".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+__all__ = ["graph_problems"]
+
+
+def _full(name: str, namespace: str) -> str:
+    return f"{namespace.rstrip('/')}/{name}" if namespace not in ("", "/") else f"/{name}"
+
+
+def graph_problems(
+    node_names: Iterable[tuple[str, str]],
+    me: tuple[str, str],
+    publisher_types: Mapping[str, Iterable[str]],
+    expected_types: Mapping[str, str],
+) -> list[str]:
+    """What is wrong on the graph, in words (empty: nothing).
+
+    Parameters
+    ----------
+    node_names : iterable of (str, str)
+        ``(name, namespace)`` of every node on the graph
+        (``Node.get_node_names_and_namespaces()``), this one included.
+    me : (str, str)
+        This node's name and namespace.
+    publisher_types : mapping of str to iterable of str
+        Per input topic, the message types of its publishers
+        (``Node.get_publishers_info_by_topic``), e.g. ``geometry_msgs/msg/PoseArray``.
+    expected_types : mapping of str to str
+        Per input topic, the type this node subscribes with.
+    """
+    problems = []
+    twins = sum(1 for n in node_names if tuple(n) == tuple(me))
+    if twins > 1:
+        problems.append(
+            f"{twins} nodes named {_full(*me)} are running: each publishes every output and answers ~/save; "
+            "stop the others or start this one in another namespace (--ros-args -r __ns:=/name)"
+        )
+    for topic, wanted in expected_types.items():
+        others = sorted({t for t in publisher_types.get(topic, ()) if t != wanted})
+        if others:
+            problems.append(
+                f"{topic} has publishers of {', '.join(others)}, which this node cannot read (it expects {wanted}); "
+                "their messages never arrive: set marker_type or fix the publisher"
+            )
+    return problems
