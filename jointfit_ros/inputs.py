@@ -222,7 +222,8 @@ class MessageRouter:
         ``input_frame_id``, when that is set),
         ``label_problems`` (labelled clouds with out-of-range or duplicated
         labels), ``unassigned`` (markers of unlabelled clouds left without a
-        point).
+        point), ``oversized_clouds`` (unlabelled clouds of more than
+        ``max_cloud_points`` points, dropped).
     last_problem : tuple of (str, str) or None
         ``(key, text)`` of the latest dropped message, for a one-time log line.
     frame_id : str
@@ -250,7 +251,10 @@ class MessageRouter:
             for source, topic in ((0, r.cfg.parent_pose_topic), (1, r.cfg.child_pose_topic)):
                 if topic:
                     self.pose_topics.setdefault(topic, []).append((r, source))
-        self.counters = {"messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0}
+        self.counters = {
+            "messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0,
+            "oversized_clouds": 0,
+        }
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
         self._last_frame: FloatArray | None = None
@@ -305,6 +309,14 @@ class MessageRouter:
                 if problems.out_of_range or problems.duplicated:
                     self.counters["label_problems"] += 1
                 frame = frame_from_points(msg.points, n, labels=msg.labels, zero_is_missing=cfg.zero_is_missing)
+            elif cfg.unlabelled and msg.points.shape[0] > cfg.max_cloud_points:
+                self._problem(
+                    "oversized",
+                    f"dropped an unlabelled cloud of {msg.points.shape[0]} points on {cfg.marker_topic} "
+                    f"(max_cloud_points {cfg.max_cloud_points})",
+                    "oversized_clouds",
+                )
+                return None
             elif cfg.unlabelled and self._last_frame is not None:
                 frame = label_points(msg.points, self._last_frame, cfg.assignment_gate, zero_is_missing=cfg.zero_is_missing)
                 missing = np.isnan(frame[:, 0])

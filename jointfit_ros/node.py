@@ -347,10 +347,11 @@ class JointfitNode(Node):
             "messages from another frame_id": self.counters["wrong_frame_id"],
             "messages with label problems": self.counters["label_problems"],
             "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
+            "oversized clouds dropped": self.counters["oversized_clouds"],
             "input frame_id": self.router.frame_id,
             "estimates solved in": "a worker process" if self._solver is not None else "the executor thread",
         }
-        problems = ("malformed", "label_problems", "wrong_frame_id")
+        problems = ("malformed", "label_problems", "wrong_frame_id", "oversized_clouds")
         level = WARN if any(self.counters[k] for k in problems) else OK
         node_values["unexpected errors (callbacks)"] = self.guard.count
         if self.guard.count:

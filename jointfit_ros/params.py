@@ -222,6 +222,17 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         maximum=100.0,
     ),
     ParamSpec(
+        "max_cloud_points",
+        "int",
+        2000,
+        "Unlabelled PointCloud2: a cloud with more points than this is dropped and counted (labelling costs grow "
+        "with the points, and a flood of ghosts would corrupt the tracking); the tracking goes on from the "
+        "clouds before it.",
+        minimum=1,
+        maximum=10_000_000,
+        runtime=True,
+    ),
+    ParamSpec(
         "workspace",
         "double",
         0.0,
@@ -432,6 +443,7 @@ class NodeConfig:
     ellipsoid_sigma: float
     joints: tuple[JointConfig, ...]
     workspace: float = 0.0
+    max_cloud_points: int = 2000
 
     def marker_index(self, name: str) -> int:
         """Row of a marker in the marker frame."""
@@ -662,6 +674,7 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         ellipsoid_sigma=v["ellipsoid_sigma"],
         joints=configs,
         workspace=v["workspace"],
+        max_cloud_points=v["max_cloud_points"],
     )
 
 
