@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["write_atomic", "remove_stale_temporaries", "STALE_TEMPORARY_S"]
+__all__ = ["write_atomic", "write_all_or_nothing", "remove_stale_temporaries", "STALE_TEMPORARY_S"]
 
 #: A temporary file of :func:`write_atomic` older than this (s) belongs to a write that died.
 STALE_TEMPORARY_S = 5.0
@@ -128,3 +128,61 @@ def remove_stale_temporaries(path: str | os.PathLike[str], older_than_s: float =
         except OSError:
             continue
     return removed
+
+
+def write_all_or_nothing(directory: str | os.PathLike[str], files: dict[str, bytes | str]) -> Path:
+    """Write several files into ``directory`` so that a failure or an interrupt leaves none of them.
+
+    Everything is written (and flushed to disk) into a hidden temporary
+    directory beside ``directory`` first. A new ``directory`` is then that
+    temporary directory, renamed in one step: all the files or none. Into an
+    existing ``directory`` (other files of the user's are kept) each file is
+    moved with :func:`os.replace` once all are complete, so a full disk or
+    Ctrl-C while writing leaves the old files as they were.
+
+    Parameters
+    ----------
+    directory : str or os.PathLike
+    files : dict of str to bytes or str
+        File name (no directories) to content (str as UTF-8).
+
+    Returns
+    -------
+    Path
+        ``directory``.
+
+    Raises
+    ------
+    OSError
+        Nothing was written then (the temporary directory is removed).
+    """
+    target = Path(directory)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".partial", dir=target.parent))
+    try:
+        for name, content in files.items():
+            if Path(name).name != name:
+                raise ValueError(f"write_all_or_nothing: {name!r} is not a plain file name")
+            data = content.encode("utf-8") if isinstance(content, str) else bytes(content)
+            with open(staging / name, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+        os.chmod(staging, 0o777 & ~_umask())
+        if not target.exists():
+            os.rename(staging, target)
+        else:
+            for name in files:
+                os.replace(staging / name, target / name)
+            staging.rmdir()
+        _fsync_dir(target.parent)
+        return target
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from .atomic import write_atomic
 from .errors import InputError, MissingDependencyError
 
-__all__ = ["fit_to_dict", "fit_from_dict", "save_calibration", "load_calibration"]
+__all__ = ["fit_to_dict", "fit_from_dict", "save_calibration", "load_calibration", "calibration_text"]
 
 T = TypeVar("T")
 
@@ -112,9 +112,13 @@ def save_calibration(path: str | os.PathLike[str], data: dict[str, Any]) -> Path
     Path
         The written path.
     """
-    yaml = _yaml()
-    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
-    return write_atomic(path, text, keep_backup=True)
+    return write_atomic(path, calibration_text(data), keep_backup=True)
+
+
+def calibration_text(data: dict[str, Any]) -> str:
+    """The YAML text :func:`save_calibration` writes for ``data``."""
+    text: str = _yaml().safe_dump(data, sort_keys=False, default_flow_style=None)
+    return text
 
 
 def load_calibration(path: str | os.PathLike[str]) -> dict[str, Any]:

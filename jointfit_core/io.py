@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -222,6 +223,29 @@ def _c3d_labels(point_group: dict[str, Any], n_points: int, file: Path) -> tuple
     return tuple(labels[:n_points])
 
 
+def _c3d_header_frames(file: Path) -> int:
+    """Frames the C3D header block declares (words 4-5: first and last frame), 0 when unknown.
+
+    ezc3d reads what a cut file holds and adjusts its parsed header (and
+    POINT:FRAMES) to that, so a truncated file is only recognised from the
+    raw header. Both byte orders are tried (Intel/DEC files are
+    little-endian, MIPS big-endian); the 16-bit last frame of files with more
+    than 65535 frames is not trusted.
+    """
+    try:
+        with open(file, "rb") as fh:
+            head = fh.read(10)
+    except OSError:
+        return 0
+    if len(head) < 10 or head[1] != 0x50:
+        return 0
+    for order in ("<", ">"):
+        first, last = struct.unpack(f"{order}2H", head[6:10])
+        if 1 <= first <= last < 65535:
+            return last - first + 1
+    return 0
+
+
 def read_c3d(path: str | os.PathLike[str]) -> MarkerData:
     """Read the marker (POINT) trajectories of a C3D file.
 
@@ -265,6 +289,9 @@ def read_c3d(path: str | os.PathLike[str]) -> MarkerData:
     points = np.asarray(c3d["data"]["points"], dtype=np.float64)
     if points.ndim != 3 or points.shape[0] < 3:
         raise InputError(f"{file}: expected POINT data of shape (4, P, N), got shape {points.shape}")
+    declared = _c3d_header_frames(file)
+    if declared > points.shape[2]:
+        raise InputError(f"{file}: truncated: its header declares {declared} frames, the file holds {points.shape[2]}")
     markers = np.ascontiguousarray(points[:3].transpose(2, 1, 0))  # (N, P, 3)
     missing = np.isnan(markers).any(axis=2) | (markers == 0.0).all(axis=2)
     residuals = c3d["data"].get("meta_points", {}).get("residuals")
@@ -273,6 +300,7 @@ def read_c3d(path: str | os.PathLike[str]) -> MarkerData:
         if res.ndim == 3 and res.shape[1:] == points.shape[1:]:
             missing |= res[0].T < 0.0
     markers[missing] = np.nan
+    _check_plausible(markers, file)
 
     group = c3d["parameters"].get("POINT", {})
     labels = _c3d_labels(group, markers.shape[1], file)
@@ -284,6 +312,24 @@ def read_c3d(path: str | os.PathLike[str]) -> MarkerData:
     units = str(unit_values[0]).strip() if unit_values else ""
     first_frame = int(c3d["header"]["points"]["first_frame"])
     return MarkerData(markers=markers, labels=labels, rate=rate, units=units, first_frame=first_frame)
+
+
+#: No marker coordinate of a recording is this large in any unit (1e12 mm is 1e6 km): a broken value.
+ABSURD_COORDINATE = 1e12
+
+
+def _check_plausible(markers: NDArray[np.float64], file: Path, rows: list[tuple[int, str]] | None = None) -> None:
+    """Refuse a recording with an absurd coordinate (e.g. 1e300), naming the frame (the TRC line) and the marker."""
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(markers) > ABSURD_COORDINATE
+    if not bad.any():
+        return
+    frame, marker, axis = (int(v) for v in np.argwhere(bad)[0])
+    where = f"line {rows[frame][0]}" if rows is not None else f"frame {frame}"
+    raise InputError(
+        f"{file}, {where}: marker {marker} has the coordinate {markers[frame, marker, axis]:.3g}, beyond any "
+        f"capture volume (|x| > {ABSURD_COORDINATE:g})"
+    )
 
 
 def _split_trc_row(line: str) -> list[str]:
@@ -370,12 +416,18 @@ def read_trc(path: str | os.PathLike[str]) -> MarkerData:
         if frame == 0:
             first_frame = int(_trc_number(cells[0], "Frame#", file, line_no)) - 1
         coords = cells[2 : 2 + 3 * n_markers]
+        if len(cells) < 2 + 3 * n_markers and (len(cells) - 2) % 3 and cells[-1].strip():
+            raise InputError(
+                f"{file}, line {line_no}: the row is cut short ({len(cells)} cells, {2 + 3 * n_markers} expected, "
+                "the last marker incomplete)"
+            )
         flat = markers[frame].reshape(-1)
         for k, cell in enumerate(coords):
             if cell.strip():
                 flat[k] = _trc_number(cell, f"marker {labels[k // 3]!r}", file, line_no)
     if np.isinf(markers).any():
         raise InputError(f"{file}: contains inf; expected numbers or empty cells for missing markers")
+    _check_plausible(markers, file, rows)
     return MarkerData(
         markers=markers, labels=labels, rate=rate, units=header["Units"], first_frame=first_frame
     )

@@ -43,8 +43,8 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from jointfit_core import __version__
-from jointfit_core.atomic import write_atomic
-from jointfit_core.calibration import save_calibration
+from jointfit_core.atomic import write_all_or_nothing
+from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
 
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, run_fit
@@ -176,13 +176,12 @@ def fit_main(argv: Sequence[str]) -> int:
         summary["config"] = str(opts.config)
         summary["window"] = opts.window
 
-        for name, data in calibrations.items():
-            save_calibration(out_dir / f"{name}.calibration.yaml", data)
-        for name, png in figures.items():
-            write_atomic(out_dir / f"{name}.png", png)
+        files: dict[str, bytes | str] = {f"{n}.calibration.yaml": calibration_text(d) for n, d in calibrations.items()}
+        files.update({f"{n}.png": png for n, png in figures.items()})
         if opts.html:
-            write_atomic(out_dir / "report.html", html_page(summary, {n: f"{n}.png" for n in figures}))
-        write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=False, default=str) + "\n")
+            files["report.html"] = html_page(summary, {n: f"{n}.png" for n in figures})
+        files["summary.json"] = json.dumps(summary, indent=2, allow_nan=False, default=str) + "\n"
+        write_all_or_nothing(out_dir, files)
         installed = []
         if opts.write_calibration:
             for j in cfg.joints:

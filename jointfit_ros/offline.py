@@ -240,7 +240,31 @@ def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
                 f"{path}: topic {info.name} holds {info.msgtype}, the configuration reads {name} as {msgtype}"
                 + (" (marker_type)" if msgtype in _MARKER_MSGTYPE.values() else "")
             )
+    empty = [i.name for i in infos if i.count == 0]
+    if empty:
+        raise InputError(f"{path}: topic {', '.join(empty)} holds no messages")
     return [i.name for i in infos], max((i.count for i in infos), default=0)
+
+
+def _check_inputs_read(run: FitRun) -> None:
+    """Refuse a bag whose marker messages were all unreadable (e.g. another type's bytes under the topic's type).
+
+    Raises
+    ------
+    InputError
+        Naming the topic and the latest problem, instead of a fit that waits for its first frame.
+    """
+    router = run.router
+    if router is None or not router.marker_runners:
+        return
+    c = router.counters
+    read = c["messages"] - c["malformed"] - c["wrong_frame_id"] - c["oversized_clouds"]
+    if c["messages"] > 0 and read <= 0:
+        last = router.last_problem[1] if router.last_problem is not None else "no message could be read"
+        raise InputError(
+            f"{run.path}: none of the {c['messages']} messages on {run.cfg.marker_topic} could be read as "
+            f"{run.cfg.marker_type} ({last})"
+        )
 
 
 #: Most messages (frames) parsed and given to the estimators at once; blocks also end at every checkpoint.
@@ -420,6 +444,7 @@ def run_fit(
         if reader is not None:
             reader.close()
     run.n_inputs = done
+    _check_inputs_read(run)
     for t in run.traces:
         if not t.runner.estimate(force=True):
             continue  # no final estimate: an earlier one must not pass for it
