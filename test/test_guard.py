@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -181,3 +182,66 @@ def test_an_integer_for_a_double_starts_the_node(tmp_path: Path) -> None:
         proc.terminate()
         out = proc.communicate(timeout=20)[0]
     assert "Traceback" not in out, out
+
+
+@pytest.mark.ros
+def test_any_value_for_any_parameter_at_run_time_never_kills_the_node(tmp_path: Path) -> None:
+    """Hypothesis over every declared parameter and hostile values, sent to a node in its own process."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+    from rcl_interfaces.msg import Parameter as ParameterMsg
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    names = [s.name for s in NODE_PARAMS] + [f"hip.{s.name}" for s in JOINT_PARAMS]
+    values = st.one_of(
+        st.sampled_from([0, -1, 1, 0.0, -0.0, 1e-300, 5e-324, 1e300, -1e300, math.nan, math.inf, -math.inf,
+                         2**63 - 1, -(2**63), "", "x" * 1000, "fast", True, False, ["a"], [], [1.5]]),
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.integers(min_value=-(2**63), max_value=2**63 - 1),
+        st.text(max_size=20),
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jointfit_ros.node", "--ros-args", "--params-file", str(_params(tmp_path / "p.yaml"))],
+        env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(DOMAIN))
+    client_node = Node("param_fuzz", context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(client_node)
+    client = client_node.create_client(SetParameters, "/jointfit/set_parameters")
+    answers = {"refused": 0, "accepted": 0}
+    try:
+        assert client.wait_for_service(timeout_sec=30.0)
+
+        @settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+        @given(st.sampled_from(names), values)
+        def send(name: str, value: object) -> None:
+            try:
+                msg: ParameterMsg = Parameter(name, value=value).to_parameter_msg()
+            except (TypeError, ValueError, OverflowError):
+                return  # not representable as a ROS parameter at all
+            future = client.call_async(SetParameters.Request(parameters=[msg]))
+            executor.spin_until_future_complete(future, timeout_sec=10.0)
+            assert future.done(), f"no answer to {name} = {value!r}: the node is stuck or dead"
+            result = future.result().results[0]
+            answers["accepted" if result.successful else "refused"] += 1
+            assert proc.poll() is None, f"the node died on {name} = {value!r}"
+
+        send()
+        # still alive and answering; diagnostics, timers and estimates went on meanwhile
+        assert proc.poll() is None
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            out = proc.communicate(timeout=20)[0]
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out = proc.communicate()[0]
+        executor.shutdown()
+        client_node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert "Traceback" not in out, out[-3000:]
+    assert answers["refused"] > 50 and answers["accepted"] > 0, answers
