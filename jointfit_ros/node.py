@@ -55,6 +55,7 @@ from .params import (
     ConfigError,
     NodeConfig,
     ParamSpec,
+    check_known,
     check_value,
     node_config,
     range_text,
@@ -163,6 +164,7 @@ class JointfitNode(Node):
         """Declare every parameter once (joint ones after reading ``joints``); return their values."""
         values = {spec.name: self._declare(spec.name, spec) for spec in NODE_PARAMS}
         joints = check_value(NODE_PARAMS[0], values["joints"], "joints")
+        check_known(self._parameter_overrides, joints)  # a misspelt key in the params file is an error
         for joint in joints:
             for spec in JOINT_PARAMS:
                 full = f"{joint}.{spec.name}"

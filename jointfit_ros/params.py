@@ -13,10 +13,11 @@ Joint parameters live under the joint's name: ``hip.type``, ``hip.parent_markers
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,7 @@ __all__ = [
     "RUNTIME_PARAMS",
     "parameters_markdown",
     "params_from_file",
+    "check_known",
 ]
 
 
@@ -608,6 +610,35 @@ def _joint_config(
     )
 
 
+def check_known(names: Iterable[str], joints: Sequence[str]) -> None:
+    """Refuse parameter names that no declaration knows (a misspelt key would be ignored in silence).
+
+    Parameters
+    ----------
+    names : iterable of str
+        Full names as given (``marker_topic``, ``hip.outlier_gate``, ...);
+        ``use_sim_time`` and ``qos_overrides.*`` (rclpy's own) are allowed.
+    joints : sequence of str
+        The configured joints.
+
+    Raises
+    ------
+    ConfigError
+        Naming the first unknown key and the closest known one.
+    """
+    known = {s.name for s in NODE_PARAMS} | {f"{j}.{s.name}" for j in joints for s in JOINT_PARAMS}
+    for name in names:
+        if name in known or name == "use_sim_time" or name.startswith("qos_overrides."):
+            continue
+        head = name.split(".")[0]
+        if "." in name and head not in joints:
+            hint = f"; {head!r} is not in joints {list(joints)}"
+        else:
+            close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ConfigError(f"{name}: unknown parameter{hint}")
+
+
 def node_config(values: Mapping[str, Any]) -> NodeConfig:
     """Check every parameter and build the node's configuration.
 
@@ -631,6 +662,7 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
             raise ConfigError(f"joints: {j!r} is not a valid name (letters, digits and _; starting with a letter)")
     if len(set(joints)) != len(joints):
         raise ConfigError(f"joints: a name is listed twice: {joints!r}")
+    check_known(values, joints)
     names = v["marker_names"]
     if len(set(names)) != len(names):
         raise ConfigError(f"marker_names: a name is listed twice: {names!r}")

@@ -71,11 +71,24 @@ def test_every_numeric_parameter_is_bounded(spec: Any) -> None:
             check_value(spec, spec.nonzero_minimum / 1e9)
 
 
+def test_unknown_keys_are_refused_with_a_suggestion() -> None:
+    values = {"joints": ["hip"], "marker_names": list("ABCDEF"), "hip.parent_markers": list("ABC"),
+              "hip.child_markers": list("DEF")}
+    from jointfit_ros.params import node_config
+
+    node_config(values)
+    with pytest.raises(ConfigError, match=r"hip\.outlier_gat: unknown parameter; did you mean 'hip\.outlier_gate'"):
+        node_config({**values, "hip.outlier_gat": 0.0})
+    with pytest.raises(ConfigError, match=r"knee\.type: unknown parameter; 'knee' is not in joints \['hip'\]"):
+        node_config({**values, "knee.type": "hinge"})
+    node_config({**values, "use_sim_time": False})
+
+
 # --------------------------------------------------------------------------- the node
 
 
 rclpy = pytest.importorskip("rclpy")
-DOMAIN = str(30 + os.getpid() % 30)
+DOMAIN = str(210 + os.getpid() % 20)  # 210-229: no other test file uses these
 ENV = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": DOMAIN}
 
 
@@ -156,6 +169,7 @@ def test_parameter_changes_rearm_timers_and_refuse_bad_values(node: Any) -> None
         ("    qos_depth: 'ten'\n", "qos_depth"),
         ("    estimate_period: 'fast'\n", "estimate_period"),
         ("    marker_names: PELV1\n", "marker_names"),
+        ("    marker_topik: mocap\n", "did you mean 'marker_topic'"),
     ],
 )
 def test_bad_values_at_start_give_one_line_and_exit_2(tmp_path: Path, extra: str, name: str) -> None:
@@ -177,10 +191,11 @@ def test_an_integer_for_a_double_starts_the_node(tmp_path: Path) -> None:
     )
     try:
         time.sleep(3.0)
-        assert proc.poll() is None
+        alive = proc.poll() is None
     finally:
         proc.terminate()
         out = proc.communicate(timeout=20)[0]
+    assert alive, out
     assert "Traceback" not in out, out
 
 
