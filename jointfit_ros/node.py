@@ -454,15 +454,30 @@ def _executor() -> Any:
         return rclpy.executors.SingleThreadedExecutor()
 
 
+USAGE = """usage: jointfit_node --ros-args --params-file PARAMS.yaml [-r __ns:=/NAMESPACE] [-p NAME:=VALUE ...]
+
+Online joint centres (ball joints) and axes (hinges) from motion-capture markers.
+The parameters (joints, marker_names, <joint>.parent_markers, ...) are listed with their
+meaning, unit, default and range in the README ("Parameters") and, for a running node, by
+`ros2 param describe`; commented examples are in config/*.yaml (config/fake_mocap.yaml
+runs against `python -m jointfit_ros.fake_mocap`).
+"""
+
+
 def main(args: list[str] | None = None) -> None:
     """Console script ``jointfit_node``."""
+    argv = list(sys.argv[1:] if args is None else args)
+    ros_at = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
+    if {"-h", "--help"} & set(argv[:ros_at]):
+        print(USAGE, end="")
+        raise SystemExit(0)
     rclpy.init(args=args)
     node: JointfitNode | None = None
     try:
         try:
             node = JointfitNode()
         except (ConfigError, ParameterException) as exc:
-            print(f"jointfit_node: invalid parameters: {exc}", file=sys.stderr)
+            print(f"jointfit_node: invalid parameters: {exc} (jointfit_node --help: where they are described)", file=sys.stderr)
             raise SystemExit(2) from None
         executor = _executor()
         executor.add_node(node)

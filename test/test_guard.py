@@ -260,3 +260,10 @@ def test_any_value_for_any_parameter_at_run_time_never_kills_the_node(tmp_path: 
         rclpy.try_shutdown(context=context)
     assert "Traceback" not in out, out[-3000:]
     assert answers["refused"] > 50 and answers["accepted"] > 0, answers
+
+
+def test_node_help_prints_the_usage() -> None:
+    proc = subprocess.run([sys.executable, "-m", "jointfit_ros.node", "--help"], capture_output=True, text=True,
+                          timeout=60, env=ENV)
+    assert proc.returncode == 0 and proc.stdout.startswith("usage: jointfit_node --ros-args --params-file")
+    assert "README" in proc.stdout
