@@ -5,6 +5,7 @@ Usage::
     jointfit fit INPUT --config FILE [--out DIR] [--node-name NAME] [--window {all,config}]
                  [--html] [--no-report] [--write-calibration] [--single-process]
                  [--progress | --quiet]
+    jointfit markers FILE        (labels, rate, units, frames and gaps of a C3D/TRC; a bag's topics)
     jointfit replay BAG [--rate R] [--loop] [--topics T ...] ...   (see jointfit_ros.replay)
     python -m jointfit_ros.cli fit ...
 
@@ -206,13 +207,17 @@ def fit_main(argv: Sequence[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point ``jointfit``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    usage = f"usage: {PROG} {{fit,replay}} ... (see '{PROG} fit --help', '{PROG} replay --help')"
+    usage = f"usage: {PROG} {{fit,markers,replay}} ... (see '{PROG} fit --help', '{PROG} replay --help')"
     if not args or args[0] in ("-h", "--help"):
         print(usage)
         sys.exit(0 if args else 2)
     command, rest = args[0], args[1:]
     if command == "fit":
         sys.exit(fit_main(rest))
+    if command == "markers":
+        from .markers_cli import markers_main
+
+        sys.exit(markers_main(rest))
     if command == "replay":
         from .replay import replay_main
 
