@@ -208,6 +208,25 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         minimum=0.0,
         runtime=True,
     ),
+    ParamSpec(
+        "max_stamp_jump",
+        "double",
+        1.0,
+        "Largest step (s) of header.stamp ahead of a topic's latest stamp (beyond the time since it arrived) "
+        "taken as the stream going on; a single message further ahead is dropped and counted, a steady run of "
+        "them is adopted.",
+        minimum=0.001,
+        runtime=True,
+    ),
+    ParamSpec(
+        "stale_after",
+        "double",
+        3.0,
+        "Seconds without input after which a status is STALE; also the wall-clock span the input rates are "
+        "measured over.",
+        minimum=0.1,
+        runtime=True,
+    ),
 )
 
 JOINT_PARAMS: tuple[ParamSpec, ...] = (
@@ -357,6 +376,8 @@ class NodeConfig:
     sync_tolerance: float
     ellipsoid_sigma: float
     joints: tuple[JointConfig, ...]
+    max_stamp_jump: float = 1.0
+    stale_after: float = 3.0
 
     def marker_index(self, name: str) -> int:
         """Row of a marker in the marker frame."""
@@ -561,6 +582,8 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         sync_tolerance=v["sync_tolerance"],
         ellipsoid_sigma=v["ellipsoid_sigma"],
         joints=configs,
+        max_stamp_jump=v["max_stamp_jump"],
+        stale_after=v["stale_after"],
     )
 
 
