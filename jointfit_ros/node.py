@@ -36,6 +36,7 @@ from jointfit_core.errors import JointfitError
 from jointfit_core.estimator import JointOutput, SolveRequest
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 
+from .activity import InputActivity
 from .conversions import (
     axis_arrow_marker,
     axis_pose_bytes,
@@ -55,7 +56,7 @@ from .params import (
     check_value,
     node_config,
 )
-from .runner import OK, WARN, JointRunner
+from .runner import OK, STALE, WARN, JointRunner
 from .solver_process import SolverProcess
 
 __all__ = ["JointfitNode", "main"]
@@ -122,7 +123,7 @@ class JointfitNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
         # Inputs.
-        self.router = MessageRouter(self.cfg, self.runners.values())
+        self.router = MessageRouter(self.cfg, self.runners.values(), clock=time.monotonic_ns)
         self.counters = self.router.counters
         self._warned: set[str] = set()
         self._last_outputs: dict[str, tuple[int, str, JointOutput]] = {}
@@ -181,6 +182,7 @@ class JointfitNode(Node):
         if changes:
             self.cfg = dataclasses.replace(self.cfg, **changes)
             self.router.cfg = self.cfg
+            self.router.timeline.max_jump_ns = round(self.cfg.max_stamp_jump * 1e9)
             for runner in self.runners.values():
                 runner.node = self.cfg
                 if runner.matcher is not None:
@@ -341,11 +343,45 @@ class JointfitNode(Node):
                 f"; {self.counters['wrong_frame_id']} messages from a frame_id other than "
                 f"{self.cfg.input_frame_id!r} dropped"
             )
+        now = time.monotonic()
+        level, message = self._input_activity(now, level, message, node_values)
         arr.status.append(diagnostic_status("jointfit: input", level, message, node_values))
         for name, runner in self.runners.items():
-            st = runner.status()
+            st = runner.live_status(now)
             arr.status.append(diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values))
         self._diag_pub.publish(arr)
+
+    _input_samples: InputActivity | None = None  # the input status's samples (made at the first tick)
+
+    def _input_activity(self, now: float, level: int, message: str, values: dict[str, object]) -> tuple[int, str]:
+        """The ``jointfit: input`` status with the stamp counters and the recent activity (adds to ``values``).
+
+        STALE after ``stale_after`` seconds without messages, WARN when every
+        message since the previous tick was dropped; the input rate is measured
+        over the last ``stale_after`` seconds.
+        """
+        c = self.counters
+        values["messages with an invalid stamp"] = c["invalid_stamps"]
+        values["messages stamped too far ahead (max_stamp_jump)"] = c["stamps_ahead"]
+        values["timeline restarts"] = c["timeline_restarts"]
+        dropped = {k: c[k] for k in ("malformed", "wrong_frame_id", "invalid_stamps", "stamps_ahead")}
+        if self._input_samples is None:
+            self._input_samples = InputActivity(self.cfg.stale_after)
+        samples = self._input_samples
+        samples.window_s = self.cfg.stale_after
+        act = samples.sample(now, c["messages"], c["messages"] - sum(dropped.values()), dropped)
+        if act.rate_hz is not None:
+            values["input rate (Hz)"] = round(act.rate_hz, 1)
+        if c["stamps_ahead"] or c["invalid_stamps"]:
+            level = max(level, WARN)
+            message += f"; {c['stamps_ahead'] + c['invalid_stamps']} messages with bad stamps dropped"
+        if c["timeline_restarts"]:
+            message += f"; the stamps restarted {c['timeline_restarts']} times (looped or restarted recording)"
+        if act.silent_s is not None and act.silent_s >= self.cfg.stale_after:
+            return STALE, f"no messages for {act.silent_s:.1f} s; {message}"
+        if act.all_dropped:
+            return max(level, WARN), f"{act.dropped_text('messages')}; {message}"
+        return level, message
 
     def destroy_node(self) -> None:
         if self._solver is not None:
