@@ -252,3 +252,39 @@ def test_joint_status_is_stale_after_silence_and_warns_when_all_is_dropped() -> 
     assert hip.live_status(4.0).level != STALE
     st = hip.live_status(6.5)
     assert st.level == STALE and "no input for 3.5 s" in st.message and st.values["input rate (Hz)"] == 0.0
+
+
+def test_router_pose_topics_loop_together_and_keep_pairing() -> None:
+    pytest.importorskip("rosbags")
+    from bagtools import pose_stamped_bytes
+
+    from jointfit_core.synthetic import two_segment_motion
+
+    motion = two_segment_motion(np.random.default_rng(4), kind="ball")
+    values = {
+        "joints": ["hip"],
+        "hip.parent_pose_topic": "/pelvis",
+        "hip.child_pose_topic": "/thigh",
+        "hip.pose_translation_sd": 0.3,
+        "hip.pose_rotation_sd_deg": 0.2,
+        "hip.window_s": 2.0,
+        "sync_tolerance": 0.001,
+    }
+    cfg = node_config(values)
+    hip = JointRunner(cfg.joints[0], cfg)
+    router = MessageRouter(cfg, [hip])
+    times = np.arange(300) / 100.0
+    R_p, d_p, R_c, d_c = motion.poses_at(times)
+    stamps = [100 * S + round(float(t) * 1e9) for t in times]
+    routed = []
+    for loop in range(2):
+        for k, stamp in enumerate(stamps):
+            routed.extend(router.pose("/pelvis", pose_stamped_bytes(stamp, "world", R_p[k], d_p[k])))
+            routed.extend(router.pose("/thigh", pose_stamped_bytes(stamp, "world", R_c[k], d_c[k])))
+            if loop == 0 and k == 200:
+                assert hip.estimate(force=True)
+    assert router.counters["timeline_restarts"] == 1  # one for both topics
+    assert hip.counters["unmatched"] <= 2 * RESTART_FRAMES and hip.counters["frames"] >= 600 - RESTART_FRAMES
+    second = routed[-(300 - RESTART_FRAMES) :]
+    assert [r.stamp_ns for r in second] == stamps[RESTART_FRAMES:]  # the replay's own stamps
+    assert hip.estimate(force=True)
