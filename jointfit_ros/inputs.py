@@ -11,7 +11,8 @@ compute exactly the same thing.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import dataclasses
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +34,7 @@ from .raw import (
     rotation_matrix_from_quaternion,
 )
 from .runner import JointRunner
+from .timeline import Timeline
 
 __all__ = [
     "Message",
@@ -190,16 +192,21 @@ def split_block(messages: Sequence[Message]) -> tuple[list[bytes], list[PoseMess
     )
 
 
-def route_frame(runners: Sequence[JointRunner], stamp_ns: int, frame_id: str, frame: FloatArray) -> list[Routed]:
+def route_frame(
+    runners: Sequence[JointRunner], stamp_ns: int, frame_id: str, frame: FloatArray, time_ns: int | None = None
+) -> list[Routed]:
     """Give one parsed marker frame (P, 3) to the joints in order; their outputs.
 
     Each joint's output in this frame becomes a virtual marker of the later
-    joints that name it in ``parent_chain`` / ``child_chain``.
+    joints that name it in ``parent_chain`` / ``child_chain``. ``time_ns``:
+    the estimators' time of the frame (:class:`~jointfit_ros.timeline.Timeline`),
+    when it is not ``stamp_ns``; the outputs carry ``stamp_ns``.
     """
     out = []
     chain: dict[str, FloatArray] = {}
+    t = stamp_ns if time_ns is None else time_ns
     for runner in runners:
-        result = runner.markers_frame(stamp_ns, frame, chain)
+        result = runner.markers_frame(t, frame, chain)
         if result is not None:
             chain[runner.cfg.name] = result.position
             out.append(Routed(runner, stamp_ns, frame_id, result))
@@ -213,6 +220,9 @@ class MessageRouter:
     ----------
     cfg : NodeConfig
     runners : iterable of JointRunner
+    clock : callable returning int, optional
+        Arrival time of a message in ns (the node: ``time.monotonic_ns``), for
+        the :attr:`timeline`; None for recordings.
 
     Attributes
     ----------
@@ -223,7 +233,11 @@ class MessageRouter:
         ``label_problems`` (labelled clouds with out-of-range or duplicated
         labels), ``unassigned`` (markers of unlabelled clouds left without a
         point), ``oversized_clouds`` (unlabelled clouds of more than
-        ``max_cloud_points`` points, dropped).
+        ``max_cloud_points`` points, dropped), and the :attr:`timeline`'s ``invalid_stamps``,
+        ``stamps_ahead`` (dropped) and ``timeline_restarts``.
+    timeline : Timeline
+        Checks every message's stamp and gives the joints increasing times
+        (``max_stamp_jump``); the outputs carry the input stamps.
     last_problem : tuple of (str, str) or None
         ``(key, text)`` of the latest dropped message, for a one-time log line.
     frame_id : str
@@ -240,7 +254,9 @@ class MessageRouter:
         ``chained`` and not ``unlabelled`` (labelled against the previous frame).
     """
 
-    def __init__(self, cfg: NodeConfig, runners: Iterable[JointRunner]) -> None:
+    def __init__(
+        self, cfg: NodeConfig, runners: Iterable[JointRunner], clock: Callable[[], int] | None = None
+    ) -> None:
         self.cfg = cfg
         self.runners = list(runners)
         self.marker_runners = [r for r in self.runners if r.uses_marker_topic]
@@ -259,14 +275,59 @@ class MessageRouter:
         self.frame_id = ""
         self._last_frame: FloatArray | None = None
         self.recorded: list[tuple[int, FloatArray]] | None = None
+        self.timeline = Timeline(round(cfg.max_stamp_jump * 1e9), clock=clock, counters=self.counters)
 
     def reset(self) -> None:
         """Forget the unlabelled-cloud prediction (after a reset of the joints)."""
         self._last_frame = None
 
     def _problem(self, key: str, text: str, counter: str = "malformed") -> None:
-        self.counters[counter] += 1
+        if counter:  # "": counted where it was found (the timeline)
+            self.counters[counter] += 1
         self.last_problem = (key, text)
+
+    def _time(self, stamp_ns: int, topic: str, runners: Sequence[JointRunner]) -> int | None:
+        """The timeline's time of a message's stamp; None when dropped (reported, and noted by ``runners``)."""
+        t = self.timeline.time_of(stamp_ns, topic)
+        event = self.timeline.last_event
+        if event is not None:
+            self.last_problem = event
+            self.timeline.last_event = None
+        if t is None:
+            _note_dropped(runners, 1)
+        return t
+
+    def _times(self, parsed: ParsedMarkers) -> tuple[ParsedMarkers, IntArray]:
+        """A block's marker messages kept by the timeline, with its times as stamps, and their real stamps.
+
+        The messages the timeline drops become problems (counted by it), at their positions.
+        """
+        timeline = self.timeline
+        kept, times = timeline.times_of(parsed.stamps_ns, self.cfg.marker_topic)
+        event = timeline.last_event
+        timeline.last_event = None
+        dropped = parsed.n - parsed.index.size
+        if bool(kept.all()):
+            if event is not None and parsed.index.size:  # a restart confirmed in the block: its log line
+                at = (int(parsed.index[-1]), *event, "")
+                parsed = dataclasses.replace(parsed, problems=sorted([*parsed.problems, at], key=lambda p: p[0]))
+            _note_dropped(self.marker_runners, dropped)
+            return dataclasses.replace(parsed, stamps_ns=times), parsed.stamps_ns
+        gone = np.flatnonzero(~kept)
+        text = ("stamp_ahead", f"dropped messages on {self.cfg.marker_topic} with bad stamps (see the counters)")
+        problems = sorted([*parsed.problems, *((int(parsed.index[i]), *(event or text), "") for i in gone)],
+                          key=lambda p: p[0])
+        _note_dropped(self.marker_runners, dropped + gone.size)
+        kept_parsed = ParsedMarkers(
+            parsed.n,
+            parsed.index[kept],
+            times[kept],
+            [f for f, k in zip(parsed.frame_ids, kept.tolist(), strict=True) if k],
+            parsed.frames[kept],
+            problems,
+            parsed.label_problems,
+        )
+        return kept_parsed, parsed.stamps_ns[kept]
 
     def _frame_id_ok(self, frame_id: str, topic: str) -> bool:
         wanted = self.cfg.input_frame_id
@@ -450,6 +511,7 @@ class MessageRouter:
             raise ValueError("chain joints are routed one message at a time (route_many)")
         self.counters["messages"] += parsed.n
         self.counters["label_problems"] += parsed.label_problems
+        parsed, real_stamps = self._times(parsed)  # stamps_ns: the timeline's times from here on
         index, stamps, frame_ids, frames, problems = (
             parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
         )
@@ -487,7 +549,7 @@ class MessageRouter:
             for runner in paired:
                 result = runner.markers_frame(int(stamps[row]), frames[row])
                 if result is not None:
-                    out.append(Routed(runner, int(stamps[row]), frame_ids[row], result))
+                    out.append(Routed(runner, int(real_stamps[row]), frame_ids[row], result))
         return out
 
     def markers(self, raw: bytes) -> list[Routed]:
@@ -495,12 +557,16 @@ class MessageRouter:
         self.counters["messages"] += 1
         got = self.frame(raw)
         if got is None:
+            _note_dropped(self.marker_runners, 1)
             return []
         stamp_ns, frame_id, frame = got
+        t = self._time(stamp_ns, self.cfg.marker_topic, self.marker_runners)
+        if t is None:
+            return []
         self.frame_id = frame_id
         if self.recorded is not None:
-            self.recorded.append((stamp_ns, frame))
-        return route_frame(self.marker_runners, stamp_ns, frame_id, frame)
+            self.recorded.append((t, frame))
+        return route_frame(self.marker_runners, stamp_ns, frame_id, frame, time_ns=t)
 
     def pose(self, topic: str, raw: bytes) -> list[Routed]:
         """A message of a pose topic: the outputs of the joints it produced one for."""
@@ -510,19 +576,32 @@ class MessageRouter:
             R = rotation_matrix_from_quaternion(msg.quaternion)
         except ConversionError as exc:
             self._problem(f"malformed:{topic}", f"dropped a malformed message on {topic}: {exc}")
+            _note_dropped([r for r, _ in self.pose_topics.get(topic, [])], 1)
             return []
         if not np.isfinite(msg.position).all():
             self._problem(f"nan:{topic}", f"dropped a pose with a non-finite position on {topic}")
+            _note_dropped([r for r, _ in self.pose_topics.get(topic, [])], 1)
             return []
         if not self._frame_id_ok(msg.frame_id, topic):
+            _note_dropped([r for r, _ in self.pose_topics.get(topic, [])], 1)
+            return []
+        t = self._time(msg.stamp_ns, topic, [r for r, _ in self.pose_topics.get(topic, [])])
+        if t is None:
             return []
         self.frame_id = self.frame_id or msg.frame_id
         out = []
         for runner, source in self.pose_topics.get(topic, []):
-            result = runner.pose(source, msg.stamp_ns, R, msg.position)
+            result = runner.pose(source, t, R, msg.position)
             if result is not None:
                 out.append(Routed(runner, msg.stamp_ns, msg.frame_id, result))
         return out
+
+
+def _note_dropped(runners: Iterable[JointRunner], n: int) -> None:
+    """Tell the joints a message meant for them was dropped before it reached them (their status counts it)."""
+    if n:
+        for runner in runners:
+            runner.note_dropped(n)
 
 
 def _count_text(got: int, n: int) -> str:

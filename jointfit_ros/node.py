@@ -37,6 +37,7 @@ from jointfit_core.errors import JointfitError
 from jointfit_core.estimator import JointOutput, SolveRequest
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 
+from .activity import InputActivity
 from .conversions import (
     axis_arrow_marker,
     axis_pose_bytes,
@@ -60,7 +61,7 @@ from .params import (
     node_config,
     range_text,
 )
-from .runner import ERROR, OK, WARN, JointRunner
+from .runner import ERROR, OK, STALE, WARN, JointRunner
 from .solver_process import SolverProcess
 
 __all__ = ["JointfitNode", "main"]
@@ -123,7 +124,7 @@ class JointfitNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
         # Inputs.
-        self.router = MessageRouter(self.cfg, self.runners.values())
+        self.router = MessageRouter(self.cfg, self.runners.values(), clock=time.monotonic_ns)
         self.counters = self.router.counters
         self._warned: set[str] = set()
         self._last_outputs: dict[str, tuple[int, str, JointOutput]] = {}
@@ -192,6 +193,7 @@ class JointfitNode(Node):
         if changes:
             self.cfg = dataclasses.replace(self.cfg, **changes)
             self.router.cfg = self.cfg
+            self.router.timeline.max_jump_ns = round(self.cfg.max_stamp_jump * 1e9)
             for runner in self.runners.values():
                 runner.node = self.cfg
                 if runner.matcher is not None:
@@ -366,6 +368,8 @@ class JointfitNode(Node):
                 f"; {self.counters['wrong_frame_id']} messages from a frame_id other than "
                 f"{self.cfg.input_frame_id!r} dropped"
             )
+        now = time.monotonic()
+        level, message = self._input_activity(now, level, message, node_values)
         if self.guard.count:
             level = ERROR if self.guard.recent else max(level, WARN)
             message += f"; {self.guard.count} unexpected error(s), last: {self.guard.last}"
@@ -376,7 +380,7 @@ class JointfitNode(Node):
             node_values["graph problems"] = " | ".join(graph)
         arr.status.append(diagnostic_status("jointfit: input", level, message, node_values))
         for name, runner in self.runners.items():
-            st = runner.status()
+            st = runner.live_status(now)
             arr.status.append(diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values))
         self._diag_pub.publish(arr)
 
@@ -393,6 +397,38 @@ class JointfitNode(Node):
         for text in problems:
             self._warn_once(f"graph:{text}", text)
         return problems
+
+    _input_samples: InputActivity | None = None  # the input status's samples (made at the first tick)
+
+    def _input_activity(self, now: float, level: int, message: str, values: dict[str, object]) -> tuple[int, str]:
+        """The ``jointfit: input`` status with the stamp counters and the recent activity (adds to ``values``).
+
+        STALE after ``stale_after`` seconds without messages, WARN when every
+        message since the previous tick was dropped; the input rate is measured
+        over the last ``stale_after`` seconds.
+        """
+        c = self.counters
+        values["messages with an invalid stamp"] = c["invalid_stamps"]
+        values["messages stamped too far ahead (max_stamp_jump)"] = c["stamps_ahead"]
+        values["timeline restarts"] = c["timeline_restarts"]
+        dropped = {k: c[k] for k in ("malformed", "wrong_frame_id", "invalid_stamps", "stamps_ahead", "oversized_clouds")}
+        if self._input_samples is None:
+            self._input_samples = InputActivity(self.cfg.stale_after)
+        samples = self._input_samples
+        samples.window_s = self.cfg.stale_after
+        act = samples.sample(now, c["messages"], c["messages"] - sum(dropped.values()), dropped)
+        if act.rate_hz is not None:
+            values["input rate (Hz)"] = round(act.rate_hz, 1)
+        if c["stamps_ahead"] or c["invalid_stamps"]:
+            level = max(level, WARN)
+            message += f"; {c['stamps_ahead'] + c['invalid_stamps']} messages with bad stamps dropped"
+        if c["timeline_restarts"]:
+            message += f"; the stamps restarted {c['timeline_restarts']} times (looped or restarted recording)"
+        if act.silent_s is not None and act.silent_s >= self.cfg.stale_after:
+            return STALE, f"no messages for {act.silent_s:.1f} s; {message}"
+        if act.all_dropped:
+            return max(level, WARN), f"{act.dropped_text('messages')}; {message}"
+        return level, message
 
     def destroy_node(self) -> None:
         if self._solver is not None:

@@ -258,7 +258,8 @@ def _check_inputs_read(run: FitRun) -> None:
     if router is None or not router.marker_runners:
         return
     c = router.counters
-    read = c["messages"] - c["malformed"] - c["wrong_frame_id"] - c["oversized_clouds"]
+    dropped = ("malformed", "wrong_frame_id", "oversized_clouds", "invalid_stamps", "stamps_ahead")
+    read = c["messages"] - sum(c.get(k, 0) for k in dropped)
     if c["messages"] > 0 and read <= 0:
         last = router.last_problem[1] if router.last_problem is not None else "no message could be read"
         raise InputError(

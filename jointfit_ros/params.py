@@ -245,6 +245,27 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         runtime=True,
         maximum=1e6,
     ),
+    ParamSpec(
+        "max_stamp_jump",
+        "double",
+        1.0,
+        "Largest step (s) of header.stamp ahead of a topic's latest stamp (beyond the time since it arrived) "
+        "taken as the stream going on; a single message further ahead is dropped and counted, a steady run of "
+        "them is adopted.",
+        minimum=0.001,
+        runtime=True,
+        maximum=3600.0,
+    ),
+    ParamSpec(
+        "stale_after",
+        "double",
+        3.0,
+        "Seconds without input after which a status is STALE; also the wall-clock span the input rates are "
+        "measured over.",
+        minimum=0.1,
+        runtime=True,
+        maximum=86400.0,
+    ),
 )
 
 JOINT_PARAMS: tuple[ParamSpec, ...] = (
@@ -446,6 +467,8 @@ class NodeConfig:
     joints: tuple[JointConfig, ...]
     workspace: float = 0.0
     max_cloud_points: int = 2000
+    max_stamp_jump: float = 1.0
+    stale_after: float = 3.0
 
     def marker_index(self, name: str) -> int:
         """Row of a marker in the marker frame."""
@@ -707,6 +730,8 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         joints=configs,
         workspace=v["workspace"],
         max_cloud_points=v["max_cloud_points"],
+        max_stamp_jump=v["max_stamp_jump"],
+        stale_after=v["stale_after"],
     )
 
 

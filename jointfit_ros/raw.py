@@ -219,6 +219,8 @@ class _Reader:
         self.align(4)
         self.need(8, "header.stamp")
         sec, nanosec = struct.unpack_from(self.prefix + "iI", self.buf, self.pos)
+        if nanosec >= _NS_PER_S:
+            raise ConversionError(_nanosec_text(int(sec), int(nanosec)))
         self.pos += 8
         return int(sec) * _NS_PER_S + int(nanosec)
 
@@ -652,6 +654,26 @@ def _columns(spans: list[tuple[int, int]]) -> NDArray[np.intp]:
     return np.concatenate([np.arange(a, b) for a, b in spans]) if spans else np.zeros(0, np.intp)
 
 
+def _nanosec_text(sec: int, nanosec: int) -> str:
+    return (
+        f"header.stamp: nanosec {nanosec} is not below 10^9 (sec {sec}): not a valid time, and no output "
+        "header could carry it"
+    )
+
+
+def _bad_nanosec(block: NDArray[np.uint8]) -> IntArray:
+    """Rows of ``block`` (G, L >= 12; messages as rows) whose ``header.stamp.nanosec`` is 10^9 or more.
+
+    Only messages with a valid encapsulation (00 00 or 00 01): for the others that is the first error.
+    """
+    little = block[:, 1] == 1
+    valid = (block[:, 0] == 0) & (block[:, 1] <= 1)
+    le = block[:, 8:12].copy().view("<u4")[:, 0]
+    be = block[:, 8:12].copy().view(">u4")[:, 0]
+    nsec = np.where(little, le, be)
+    return np.flatnonzero(valid & (nsec >= _NS_PER_S))
+
+
 def _stamps_ns(block: NDArray[np.uint8], little: bool) -> IntArray:
     """``header.stamp`` of messages stacked as rows of ``block`` (G, L), nanoseconds."""
     order = "<" if little else ">"
@@ -673,6 +695,15 @@ def _parse_batch(raws: Sequence[Buffer], kind: str, label_field: str | None) -> 
         block = np.frombuffer(joined, dtype=np.uint8).reshape(index.size, length)
         not_stamp = np.r_[0:min(4, length), 12:length]
         pending = np.arange(index.size)
+        if length >= 12:
+            # an invalid stamp is the message's own error: the messages sharing its other bytes are fine
+            bad = _bad_nanosec(block)
+            for row in bad.tolist():
+                sec = int(np.frombuffer(bytes(block[row, 4:8]), dtype="<i4" if block[row, 1] == 1 else ">i4")[0])
+                nsec = int(np.frombuffer(bytes(block[row, 8:12]), dtype="<u4" if block[row, 1] == 1 else ">u4")[0])
+                errors[int(index[row])] = ConversionError(_nanosec_text(sec, nsec))
+            if bad.size:
+                pending = np.delete(pending, bad)
         while pending.size:
             ref = raws[int(index[pending[0]])]
             try:
@@ -787,7 +818,15 @@ def parse_pointcloud2s(raws: Sequence[Buffer], *, label_field: str | None = None
 
 
 def ns_from_stamp(stamp: Any) -> int:
-    """Nanoseconds of a ``builtin_interfaces/Time`` (``sec * 1e9 + nanosec``, exact integer)."""
+    """Nanoseconds of a ``builtin_interfaces/Time`` (``sec * 1e9 + nanosec``, exact integer).
+
+    Raises
+    ------
+    ConversionError
+        ``nanosec`` is 10^9 or more (not a time).
+    """
+    if int(stamp.nanosec) >= _NS_PER_S:
+        raise ConversionError(_nanosec_text(int(stamp.sec), int(stamp.nanosec)))
     return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
 
 

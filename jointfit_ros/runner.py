@@ -35,6 +35,7 @@ from jointfit_core.estimator import (
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
+from .activity import InputActivity
 from .params import JointConfig, NodeConfig
 from .sync import StampMatcher
 
@@ -750,3 +751,54 @@ class JointRunner:
         if self.last_error and (self.counters["malformed"] or self.counters["estimate_failures"]):
             return Status(OK, f"{'frozen' if est.frozen else 'estimating'}; last problem: {self.last_error}", values)
         return Status(OK, "frozen" if est.frozen else "estimating", values)
+
+    # ------------------------------------------------------------------ recent activity (wall clock)
+
+    #: Inputs meant for this joint that the router dropped before they reached it (see :meth:`note_dropped`).
+    _upstream_dropped: int = 0
+    _activity: InputActivity | None = None
+
+    def note_dropped(self, n: int = 1) -> None:
+        """Count ``n`` inputs meant for this joint that were dropped before they reached it (malformed, bad stamps)."""
+        self._upstream_dropped += n
+
+    def live_status(self, now: float, stale_after: float | None = None) -> Status:
+        """:meth:`status` as of ``now`` (seconds, monotonic): the node's ``/diagnostics`` status.
+
+        Called at every diagnostics tick. The input rate is measured over the
+        last ``stale_after`` seconds of wall clock (0 once the input stops);
+        after ``stale_after`` seconds without input the level is STALE; when
+        every input since the previous call was dropped it is at least WARN,
+        with the reasons.
+
+        Parameters
+        ----------
+        now : float
+            Seconds (``time.monotonic()``).
+        stale_after : float, optional
+            Seconds; default the node's ``stale_after``.
+        """
+        stale_after = self.node.stale_after if stale_after is None else stale_after
+        if self._activity is None:
+            self._activity = InputActivity(stale_after)
+        self._activity.window_s = stale_after
+        est, c = self.estimator, self.counters
+        arrived = c["frames"] + c["malformed"] + c["unmatched"] + self._upstream_dropped
+        used = est.n_frames_seen - est.dropped.get("parent_not_posed", 0)
+        reasons = {
+            **est.dropped,
+            "malformed": c["malformed"],
+            "unmatched": c["unmatched"],
+            "dropped before this joint (see jointfit: input)": self._upstream_dropped,
+        }
+        act = self._activity.sample(now, arrived, used, reasons)
+        st = self.status()
+        values = dict(st.values)
+        if act.rate_hz is not None:
+            values["input rate (Hz)"] = round(act.rate_hz, 1)
+        if act.silent_s is not None and act.silent_s >= stale_after:
+            values["seconds without input"] = round(act.silent_s, 1)
+            return Status(STALE, f"no input for {act.silent_s:.1f} s (stale_after {stale_after:g} s); {st.message}", values)
+        if act.all_dropped and st.level != ERROR:
+            return Status(max(st.level, WARN) if st.level != STALE else WARN, f"{act.dropped_text()}; {st.message}", values)
+        return st if values == st.values else Status(st.level, st.message, values)
