@@ -58,6 +58,8 @@ __all__ = [
     "ShapeTrack",
     "consistent_frames",
     "frame_jumps",
+    "gated_verdict",
+    "GATE_WARN_SHARE",
     "marker_code",
     "gate_fails",
 ]
@@ -422,3 +424,39 @@ class BlockJumps:
         self.jump[part], self.stale[part] = frame_jumps(loc, vis_p, *self.track.block_references(loc, vis_p, num), num)
         out: NDArray[np.intp] = i + 1 + np.flatnonzero(self.fails(margin, part))
         return out
+
+
+#: Above this share of a segment's frames rejected by the outlier gate, the verdict says so
+#: (``jointfit fit`` exits 3, ``/diagnostics`` warns): the estimate then rests on the frames the
+#: gate kept, which may not be all the motion.
+GATE_WARN_SHARE = 0.10
+
+
+def gated_verdict(gated: tuple[int, int], frames: int, names: tuple[str, str]) -> str:
+    """Empty, or what the outlier gate did to the segments above :data:`GATE_WARN_SHARE` of the frames.
+
+    Parameters
+    ----------
+    gated : (int, int)
+        Frames in which the parent and the child failed the gate
+        (:attr:`OnlineJoint.gated_frames <jointfit_core.estimator.OnlineJoint.gated_frames>`).
+    frames : int
+        Frames the estimator took (:attr:`OnlineJoint.n_frames_seen
+        <jointfit_core.estimator.OnlineJoint.n_frames_seen>`).
+    names : (str, str)
+        How to name the parent and the child (their role and markers).
+    """
+    if frames <= 0:
+        return ""
+    parts = [
+        f"the outlier gate rejected {100.0 * n / frames:.0f} % of the {name} frames ({n} of {frames})"
+        for n, name in zip(gated, names, strict=True)
+        if n > GATE_WARN_SHARE * frames
+    ]
+    if not parts:
+        return ""
+    return (
+        "; ".join(parts)
+        + ": the estimate rests on the frames it kept; look for swapped labels, ghosts or jumps in those markers "
+        "(the figure marks the frames), and compare with outlier_gate 0"
+    )

@@ -324,6 +324,13 @@ class JointConfig:
     axis_toward_marker: str
     local_frame_id: str
 
+    def segment_names(self) -> tuple[str, str]:
+        """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
+        return (
+            f"parent ({', '.join(self.parent_markers) or self.parent_pose_topic})",
+            f"child ({', '.join(self.child_markers) or self.child_pose_topic})",
+        )
+
     def window_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of :class:`jointfit_core.estimator.OnlineJoint` for the window."""
         if self.window_s > 0.0:

@@ -30,6 +30,7 @@ from jointfit_core.estimator import (
     SolveResult,
     virtual_markers_template,
 )
+from jointfit_core.gate import gated_verdict
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import PoseSumsCentre
 
@@ -443,6 +444,8 @@ class JointRunner:
         }
         for reason, count in sorted(est.dropped.items()):
             values[f"dropped: {reason}"] = count
+        for side, n in zip(("parent", "child"), est.gated_frames, strict=True):
+            values[f"{side} gated (%)"] = round(100.0 * n / est.n_frames_seen, 2) if est.n_frames_seen else 0.0
         if self.loaded_from:
             values["calibration loaded from"] = self.loaded_from
         sol = est.solution
@@ -477,6 +480,9 @@ class JointRunner:
             values["point_parent"] = np.round(sol.point_parent, 6).tolist()
         if not sol.identifiable:
             return Status(WARN, f"not identifiable: {sol.reason}", values)
+        gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names())
+        if gated:
+            return Status(WARN, gated, values)
         if units:
             return Status(WARN, units, values)
         if self.last_error and (self.counters["malformed"] or self.counters["estimate_failures"]):
