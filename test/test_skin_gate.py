@@ -150,7 +150,7 @@ def test_templates_are_built_promptly_on_a_deforming_cluster(deformation_mm: flo
 
 def _gated_recording(tmp_path: Path) -> tuple[Path, Path, FloatArray, FloatArray]:
     """A TRC of a 12 Hz knee whose thigh cluster has ghosts and jumps in ~25 % of its frames, and its config."""
-    t, thigh, shank = _knee(5, 720, 4.0)
+    _, thigh, shank = _knee(5, 720, 4.0)
     _corrupt(5, thigh, shank, 0.25, sides=(0,))
     frames = np.concatenate([thigh, shank], axis=1)
     trc = tmp_path / "knee.trc"
@@ -186,7 +186,7 @@ def test_fit_exits_3_when_the_gate_rejects_over_10_percent(tmp_path: Path, capsy
 
 
 def test_fit_reports_the_gated_share_and_exits_0_on_clean_skin_data(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    t, thigh, shank = _knee(6, 216, 4.0)
+    _, thigh, shank = _knee(6, 216, 4.0)
     trc = tmp_path / "clean.trc"
     write_trc(trc, MarkerData(np.round(np.concatenate([thigh, shank], axis=1), 5), tuple(NAMES), RATE, "mm"))
     _, config, _, _ = _gated_recording(tmp_path)
