@@ -704,13 +704,16 @@ class OnlineJoint:
         covariances of the closed forms on the window exactly; ``rho`` is
         measured and reported (:attr:`serial_inflation`) either way.
     gate : float
-        Outlier gate (default 5; 0 disables it): once an estimate exists, a
-        segment whose pose fit leaves an rms marker residual above ``gate``
-        times that segment's noise estimate loses its worst-fitting marker
-        and is fitted again, down to 3 markers; if it still fails, the
-        segment is not posed in that frame. Swapped labels, ghost markers
-        and jumps are dropped before they reach the statistics or the
-        per-frame output (see Notes).
+        Outlier gate (default 5; 0 disables it): once the templates and a
+        noise estimate exist, a segment whose markers, posed in its template
+        frame, jump from its last passed frame by more than ``gate`` times
+        its normal jump (:mod:`jointfit_core.gate`; or that fails the
+        residual test, rms residual above ``gate`` times its noise estimate,
+        while moving more than usual) loses its worst-fitting marker and is
+        fitted again, down to 3 markers; if it still fails, the segment is
+        not posed in that frame. Swapped labels, ghost markers and jumps are
+        dropped before they reach the statistics or the per-frame output;
+        smooth skin deformation passes (see Notes, :attr:`gated_frames`).
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 

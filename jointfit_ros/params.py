@@ -269,8 +269,10 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "outlier_gate",
         "double",
         5.0,
-        "Outlier gate: a segment whose rms marker residual exceeds this many times its noise estimate loses its "
-        "worst marker (down to 3) or is not posed in that frame (swaps, ghosts, jumps); 0: off.",
+        "Outlier gate: a segment whose markers jump by more than this many times their normal frame-to-frame "
+        "change (or fail the residual test, this many times the noise, while moving more than usual) loses its "
+        "worst marker (down to 3) or is not posed in that frame (swaps, ghosts, jumps; smooth skin motion passes); "
+        "0: off.",
         minimum=0.0,
     ),
     ParamSpec(
