@@ -1688,10 +1688,17 @@ class OnlineJoint:
                 continue
             assert seg is not None
             local[k] = lk = (self._Y[k, vs.index] - d[k]) @ R[k]
-            jumps[k], stale = seg.shape.jump(vs.index, lk, frame_no, vs.code)
+            jumps[k], stale = jump, stale = seg.shape.jump(vs.index, lk, frame_no, vs.code)
             bad = bool(ss[k] > gate_var[k] * vs.dof and vs.dof > 0.0)
-            last = seg.shape.jump(vs.index, lk, frame_no, vs.code, last=True)[0]
-            fails[k] = bool(gate_fails(jumps[k], stale, bad, *self._jump_limits(k), last)) and (bad or not refit)
+            # gate_fails, scalar, with the jump from the previous frame only where it matters (per-frame cost)
+            limit, low = self._jump_limits(k)
+            if jump == np.inf:
+                fail = bad
+            else:
+                fail = bad and (stale or jump > low)
+                if not fail and jump > limit:
+                    fail = seg.shape.jump(vs.index, lk, frame_no, vs.code, last=True)[0] > limit
+            fails[k] = fail and (bad or not refit)
         return local, jumps, fails
 
     def _seen(self, ps: _PairSet, local: list[FloatArray | None], frame_no: int) -> None:

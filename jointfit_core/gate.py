@@ -396,7 +396,10 @@ class BlockJumps:
         self.track, self.local, self.vis, self.numbers = track, local, vis, numbers
         self.residual_bad, self.limit, self.low = residual_bad, limit, low
         self.jump, self.stale = frame_jumps(local, vis, *track.block_references(local, vis, numbers), numbers)
-        self.jump_last = frame_jumps(local, vis, *track.block_references(local, vis, numbers, last=True), numbers)[0]
+        # the jump from the previous frame matters only where the jump exceeds the limit
+        self.jump_last = np.full(self.jump.shape, np.inf)
+        if (self.jump > 0.9 * limit).any():
+            self.jump_last = frame_jumps(local, vis, *track.block_references(local, vis, numbers, last=True), numbers)[0]
 
     def fails(self, margin: float, part: slice = slice(None)) -> NDArray[np.bool_]:
         """Frames (positions in ``part``) that may fail, with the limit lowered by ``margin`` (a fraction)."""
