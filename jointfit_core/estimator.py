@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from .calibration import fit_from_dict, fit_to_dict
 from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
+from .gate import GATE_JUMP_LOW, BlockJumps, ShapeTrack, consistent_frames, gate_fails, marker_code
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
 from .quaternion_fit import HORN_A, HORN_B, rotations_from_correlations
@@ -60,8 +61,9 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 #: ``format`` and ``version`` keys of a saved calibration (:meth:`OnlineJoint.to_dict`).
-#: Template building: a candidate frame is discarded when an inter-marker distance deviates from the
-#: median of the candidates by more than this many times the typical (median) largest deviation.
+#: Template building: a candidate frame is discarded when its inter-marker distances changed from the
+#: frame before by more than this many times the usual (90th percentile) change, and did not come
+#: back (:func:`~jointfit_core.gate.consistent_frames`).
 TEMPLATE_DEV_FACTOR = 5.0
 
 #: Outlier gate: the noise sigma it assumes is at least this fraction of the templates' rms radius
@@ -195,6 +197,7 @@ class _VisibleSet:
     xx: float  # sum |xc|^2
     W_unit: FloatArray  # (6, 6) local pose covariance at unit noise
     dof: float  # 3 n - 6
+    code: int = 0  # the visible markers as a bit mask (the outlier gate's shape references)
 
 
 @dataclass(frozen=True, eq=False)
@@ -318,6 +321,8 @@ class _Segment:
         self._full_rot = 0.0
         self.rms_radius = 0.0  # of the template (input units; 0 until it exists)
         self.min_spacing = 0.0  # least distance between two template points (input units)
+        self.shape = ShapeTrack(n_markers)  # the outlier gate's shape references and recent jumps
+        self.gated_frames = 0  # frames in which the segment failed the outlier gate
 
     @property
     def template_progress(self) -> int:
@@ -327,13 +332,18 @@ class _Segment:
         """Use a fully visible frame for the template (consistent frames aligned and averaged).
 
         Once ``template_frames`` candidates are collected, frames whose
-        inter-marker distances (rigid invariants) deviate from the median
-        ones by more than :data:`TEMPLATE_DEV_FACTOR` times the typical
-        deviation are discarded (a label swap or a ghost during the first
-        frames would otherwise be built into the template) and collection
-        goes on; after ``4 * template_frames`` candidates the consistent ones
-        are used whatever their number. The template is their average, each
-        aligned (Kabsch) to the first consistent frame.
+        inter-marker distances (rigid invariants) change suddenly, by more
+        than :data:`TEMPLATE_DEV_FACTOR` times the usual (90th percentile)
+        change from one candidate to the next, and do not come back
+        (:func:`~jointfit_core.gate.consistent_frames`), are discarded (a
+        label swap or a ghost during the first frames would otherwise be
+        built into the template) and collection goes on; after ``4 *
+        template_frames`` candidates the consistent ones are used whatever
+        their number. Distances that drift smoothly (a skin cluster
+        deforming as the joint flexes) are consistent. The template is their
+        average, each aligned (Kabsch) to the first consistent frame; the
+        aligned frames' changes from one to the next seed the gate's normal
+        jump (:class:`~jointfit_core.gate.ShapeTrack`).
         """
         if self.template is not None or np.isnan(y).any():
             return
@@ -346,9 +356,7 @@ class _Segment:
             return
         X = np.stack(self._frames)
         D = np.linalg.norm(X[:, :, None, :] - X[:, None, :, :], axis=3)
-        dev = np.abs(D - np.median(D, axis=0)).max(axis=(1, 2))
-        typical = float(np.median(dev))
-        keep = dev <= TEMPLATE_DEV_FACTOR * typical + 1e-12 * float(D.max())
+        keep = consistent_frames(D, TEMPLATE_DEV_FACTOR)
         if keep.all() or self._seen >= 4 * self.template_frames:
             kept = X[keep]
             x0 = kept[0]
@@ -358,6 +366,8 @@ class _Segment:
             self.template_sigma = float(np.sqrt(np.sum((aligned - mean) ** 2) / dof))
             self._frames = []
             self.set_template(mean)
+            steps = np.sum(np.diff(aligned, axis=0) ** 2, axis=2).max(axis=1, initial=0.0)
+            self.shape = ShapeTrack(self.n_markers, steps.tolist())
         else:
             self._frames = [x for x, k in zip(self._frames, keep, strict=True) if k]
 
@@ -395,6 +405,7 @@ class _Segment:
                     xx=float(np.einsum("ij,ij->", xc, xc)),
                     W_unit=W,
                     dof=3.0 * xv.shape[0] - 6.0,
+                    code=marker_code(np.flatnonzero(vis)),
                 )
         self._cache[key] = out
         return out
@@ -726,13 +737,16 @@ class OnlineJoint:
         covariances of the closed forms on the window exactly; ``rho`` is
         measured and reported (:attr:`serial_inflation`) either way.
     gate : float
-        Outlier gate (default 5; 0 disables it): once an estimate exists, a
-        segment whose pose fit leaves an rms marker residual above ``gate``
-        times that segment's noise estimate loses its worst-fitting marker
-        and is fitted again, down to 3 markers; if it still fails, the
-        segment is not posed in that frame. Swapped labels, ghost markers
-        and jumps are dropped before they reach the statistics or the
-        per-frame output (see Notes).
+        Outlier gate (default 5; 0 disables it): once the templates and a
+        noise estimate exist, a segment whose markers, posed in its template
+        frame, jump from its last passed frame by more than ``gate`` times
+        its normal jump (:mod:`jointfit_core.gate`; or that fails the
+        residual test, rms residual above ``gate`` times its noise estimate,
+        while moving more than usual) loses its worst-fitting marker and is
+        fitted again, down to 3 markers; if it still fails, the segment is
+        not posed in that frame. Swapped labels, ghost markers and jumps are
+        dropped before they reach the statistics or the per-frame output;
+        smooth skin deformation passes (see Notes, :attr:`gated_frames`).
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -880,6 +894,9 @@ class OnlineJoint:
         ):
             raise InputError(f"gate: expected a number >= 0 (0: off), got {gate!r}")
         self.gate = float(gate)
+        #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
+        #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
+        self.gate_log: list[tuple[int, int, float]] | None = None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -925,8 +942,9 @@ class OnlineJoint:
         self._ref_frame = [0, 0]
         self._held = [0, 0]
         self._arrivals = 0
-        self._gate_key: tuple[float, bool, tuple[float, float]] | None = None
+        self._gate_key: tuple[float, bool, tuple[float, float], int] | None = None
         self._gate_cache: FloatArray | None = None
+        self._jump_limit = np.full(2, np.inf)
         self._pairs: dict[bytes, _PairSet] = {}
         self._table: tuple[FloatArray, ...] = ()
         self._Y = np.zeros((0, 0, 3))
@@ -975,6 +993,14 @@ class OnlineJoint:
             return 0.0
         assert self._parent is not None and self._child is not None
         return max(self._parent.rms_radius, self._child.rms_radius)
+
+    @property
+    def gated_frames(self) -> tuple[int, int]:
+        """Frames in which the parent and the child failed the outlier gate (held out whole or in part)."""
+        return (
+            0 if self._parent is None else self._parent.gated_frames,
+            0 if self._child is None else self._child.gated_frames,
+        )
 
     @property
     def noise_std(self) -> tuple[float, float]:
@@ -1293,16 +1319,29 @@ class OnlineJoint:
         at, side = np.divmod(posed, 2)
         # per segment: rows (positions in ``rows``) that pose it, oldest first
         seg_rows = [at[side == k] for k in range(2)]
+        shapes: list[BlockJumps] = []  # per segment, the jumps of the rows that pose it
         if rows.size:
+            assert self._parent is not None and self._child is not None
             fields = self._pair_table()
             seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
-            Rs, ds, sss = _poses_many(Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side], *self._pose_fields(seg))
+            Y_seg = Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side]
+            Rs, ds, sss = _poses_many(Y_seg, *self._pose_fields(seg))
             R.reshape(-1, 3, 3)[posed] = Rs
             d.reshape(-1, 3)[posed] = ds
             ss.reshape(-1)[posed] = sss
             dof = fields[5].reshape(-1)[seg]
             candidate = np.zeros(rows.size, dtype=bool)
-            candidate[at[(sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)]] = True
+            residual_bad = (sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)
+            local = np.einsum("kpi,kij->kpj", Y_seg - ds[:, None, :], Rs)  # R^T (y - d) of every marker
+            vis = fields[1].reshape(-1, Y.shape[2])[seg] > 0.0
+            for k, segment in enumerate((self._parent, self._child)):
+                sel, p = side == k, segment.n_markers
+                bj = BlockJumps(
+                    segment.shape, local[sel, :p], vis[sel, :p], numbers[rows[seg_rows[k]]], residual_bad[sel],
+                    *self._jump_limits(k),
+                )
+                candidate[seg_rows[k][bj.fails(_SS_MARGIN)]] = True
+                shapes.append(bj)
             for k in range(2):
                 pos = seg_rows[k]
                 if not pos.size:
@@ -1334,6 +1373,8 @@ class OnlineJoint:
                     i = int(np.searchsorted(seg, hi)) - 1  # the run's last row that poses segment k
                     if i >= 0 and seg[i] >= lo:
                         self._set_reference(k, R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
+                    if shapes:
+                        shapes[k].passed(int(np.searchsorted(seg, lo)), i + 1)
             if f == m:
                 break
             self._Y[...] = Y[f]
@@ -1348,6 +1389,12 @@ class OnlineJoint:
                     if g not in queued and self._turns_segment(k, R[seg[i], k], int(numbers[g])):
                         heapq.heappush(queue, g)
                         queued.add(g)
+                if shapes and i > 0 and seg[i - 1] == after - 1:  # frame f posed segment k
+                    for j in shapes[k].recheck(i - 1, _SS_MARGIN).tolist():
+                        g = int(rows[seg[j]])
+                        if g not in queued:
+                            heapq.heappush(queue, g)
+                            queued.add(g)
             start = f + 1
 
     def _pair_table(self) -> tuple[FloatArray, ...]:
@@ -1522,14 +1569,16 @@ class OnlineJoint:
 
         From the latest estimate's noise, or before the first one from the noise seen while
         building the templates; None while the gate is off or neither exists (fixed templates
-        before an estimate). Cached: it changes only with an estimate (per-frame cost).
+        before an estimate). Sets ``_jump_limit`` (2,) with it: ``gate^2`` times each segment's
+        normal jump (:class:`~jointfit_core.gate.ShapeTrack`). Cached: both change only with an
+        estimate (per-frame cost; the update and block paths then judge alike).
         """
         sigma = self._sigma
         if self._solution is None and self.templates_ready:
             # before the first estimate: the noise seen while building the templates
             assert self._parent is not None and self._child is not None
             sigma = (self._parent.template_sigma, self._child.template_sigma)
-        key = (self.gate, self._solution is None, sigma)
+        key = (self.gate, self._solution is None, sigma, self._solved_version)
         if key != self._gate_key:
             self._gate_key = key
             if self.gate <= 0.0 or min(sigma) <= 0.0:
@@ -1537,8 +1586,18 @@ class OnlineJoint:
             else:
                 # noise-free data: sigmas of rounding would gate every frame
                 floor = GATE_SIGMA_FLOOR * self.length_scale
-                self._gate_cache = np.square(self.gate * np.maximum(np.asarray(sigma), floor))
+                s = np.maximum(np.asarray(sigma), floor)
+                self._gate_cache = np.square(self.gate * s)
+                assert self._parent is not None and self._child is not None
+                self._jump_limit = self.gate**2 * np.array(
+                    [self._parent.shape.normal_jump(float(s[0]), floor), self._child.shape.normal_jump(float(s[1]), floor)]
+                )
         return self._gate_cache
+
+    def _jump_limits(self, k: int) -> tuple[float, float]:
+        """Segment ``k``'s jump limits (input units squared): ``gate^2`` and :data:`~jointfit_core.gate.GATE_JUMP_LOW` times its normal jump."""
+        normal = float(self._jump_limit[k]) / max(self.gate**2, 1e-300)
+        return float(self._jump_limit[k]), GATE_JUMP_LOW * normal
 
     def _turn_active(self, frame_no: int) -> tuple[bool, bool]:
         """Per segment, whether the gate's turn test applies in frame ``frame_no``.
@@ -1567,13 +1626,17 @@ class OnlineJoint:
         self._ref_frame[k] = frame_no
         self._held[k] = 0
 
-    def _relabelling(self, k: int, vs: _VisibleSet) -> NDArray[np.intp] | None:
+    def _relabelling(self, k: int, vs: _VisibleSet, frame_no: int) -> NDArray[np.intp] | None:
         """Segment ``k``'s visible markers in ``self._Y`` as its reference's markers relabelled, or None.
 
         Returns the template index of each visible marker when each lies within half the
         template's smallest marker spacing of a different marker predicted by the reference
-        pose: the same points under other labels (a swap). None when they are not: a segment
-        that jumped (a recording that restarts, another subject), or ghosts.
+        pose: the same points under other labels (a swap). Failing that (at low frame rates
+        the limb moves further than that from one frame to the next), the permutation of the
+        visible markers' labels under which they pass the gate's shape test
+        (:meth:`_relabelled_fit`) without turning from the reference, if any. None when
+        there is none: a segment that jumped (a recording that restarts, another subject),
+        or ghosts.
         """
         seg = self._parent if k == 0 else self._child
         assert seg is not None and seg.template is not None
@@ -1582,9 +1645,43 @@ class OnlineJoint:
         d2 = np.sum((y[:, None, :] - predicted[None, :, :]) ** 2, axis=2)
         nearest = np.argmin(d2, axis=1)
         close = d2[np.arange(nearest.size), nearest] < (0.5 * seg.min_spacing) ** 2
-        if not close.all() or np.unique(nearest).size != nearest.size:
+        if close.all() and np.unique(nearest).size == nearest.size:
+            return nearest
+        return self._relabelled_fit(k, seg, vs.index, y, frame_no)
+
+    def _relabelled_fit(
+        self, k: int, seg: _Segment, index: NDArray[np.intp], y: FloatArray, frame_no: int
+    ) -> NDArray[np.intp] | None:
+        """The labels (template indices) other than ``index`` under which ``y`` (n, 3) fits unturned, or None.
+
+        Every permutation of ``index`` (at most 5! = 120; run only for segments that turned
+        by more than :data:`GATE_MAX_TURN_DEG`) is fitted; among those within
+        :data:`GATE_MAX_TURN_DEG` of the reference that pass the shape and residual tests of
+        :func:`~jointfit_core.gate.gate_fails`, the one of least residual.
+        """
+        assert seg.template is not None
+        gate_var = self._gate_var()
+        if gate_var is None:
             return None
-        return nearest
+        dof = 3 * index.size - 6
+        best: tuple[float, NDArray[np.intp]] | None = None
+        for perm in itertools.permutations(range(index.size)):
+            if perm == tuple(range(index.size)):
+                continue
+            labels = index[list(perm)]
+            x = seg.template[labels]
+            R, d = _kabsch(y, x)
+            if _cos_turn(R, self._R_ref[k]) < _COS_MAX_TURN:
+                continue
+            ss = float(np.sum((x @ R.T + d - y) ** 2))
+            lk, code = (y - d) @ R, marker_code(labels)
+            jump, stale = seg.shape.jump(labels, lk, frame_no, code)
+            last = seg.shape.jump(labels, lk, frame_no, code, last=True)[0]
+            if gate_fails(jump, stale, ss > gate_var[k] * dof, *self._jump_limits(k), last):
+                continue
+            if best is None or ss < best[0]:
+                best = (ss, labels)
+        return None if best is None else best[1]
 
     def _follow(self, k: int, y: FloatArray, vs: _VisibleSet, labels: NDArray[np.intp], frame_no: int) -> None:
         """Carry segment ``k``'s turn reference along through a frame held out, its markers relabelled.
@@ -1599,17 +1696,68 @@ class OnlineJoint:
         self._held[k] += 1
         self._ref_frame[k] = frame_no
 
+    def _shape_tests(
+        self,
+        ps: _PairSet,
+        R: FloatArray,
+        d: FloatArray,
+        ss: FloatArray,
+        gate_var: FloatArray,
+        frame_no: int,
+        refit: bool,
+    ) -> tuple[list[FloatArray | None], list[float], list[bool]]:
+        """Per segment of a posed frame: its markers in the template frame, its jump and whether it fails the gate.
+
+        :func:`~jointfit_core.gate.gate_fails`: the jump (:class:`~jointfit_core.gate.ShapeTrack`)
+        against ``gate^2`` times the segment's normal jump, the residual against
+        ``(gate * sigma)^2`` per degree of freedom. ``refit``: the markers the gate kept
+        (:meth:`_gated`), which pass when they pass the residual test.
+        """
+        local: list[FloatArray | None] = [None, None]
+        jumps = [np.inf, np.inf]
+        fails = [False, False]
+        for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
+            if vs is None:
+                continue
+            assert seg is not None
+            local[k] = lk = (self._Y[k, vs.index] - d[k]) @ R[k]
+            jumps[k], stale = jump, stale = seg.shape.jump(vs.index, lk, frame_no, vs.code)
+            bad = bool(ss[k] > gate_var[k] * vs.dof and vs.dof > 0.0)
+            # gate_fails, scalar, with the jump from the previous frame only where it matters (per-frame cost)
+            limit, low = self._jump_limits(k)
+            if jump == np.inf:
+                fail = bad
+            else:
+                fail = bad and (stale or jump > low)
+                if not fail and jump > limit:
+                    fail = seg.shape.jump(vs.index, lk, frame_no, vs.code, last=True)[0] > limit
+            fails[k] = fail and (bad or not refit)
+        return local, jumps, fails
+
+    def _seen(self, ps: _PairSet, local: list[FloatArray | None], frame_no: int) -> None:
+        """Keep each posed segment's markers of this frame (before the gate) for the next frame's test."""
+        for seg, vs, lk in ((self._parent, ps.parent, local[0]), (self._child, ps.child, local[1])):
+            if vs is not None and lk is not None:
+                assert seg is not None
+                seg.shape.seen(vs.index, lk, frame_no, vs.code)
+
     def _gated(
-        self, missing: NDArray[np.bool_], ps: _PairSet, fail: NDArray[np.bool_], active: tuple[bool, bool]
+        self,
+        missing: NDArray[np.bool_],
+        ps: _PairSet,
+        fail: NDArray[np.bool_],
+        active: tuple[bool, bool],
+        frame_no: int,
+        stamp: float | None,
     ) -> NDArray[np.bool_]:
         """The missing-marker mask after the gate, for the segments whose fit failed it.
 
-        A segment fails when its residual exceeds the gate, or when it turned
+        A segment fails when its markers jumped (:meth:`_shape_tests`), or when it turned
         by more than :data:`GATE_MAX_TURN_DEG` from its reference (its last
         pose that passed, when ``active``: see :meth:`_turn_active`). For
         a failing segment, the subsets without one (then two) of its
         visible markers, keeping at least 3, are fitted; the best one (least
-        residual) that passes the gate AND the turn test is kept (its
+        residual) that passes the residual or the shape test, AND the turn test, is kept (its
         left-out markers counted as ``<segment>_gated_markers``). The turn
         test catches a swap in a nearly symmetric cluster, and one that
         leaves a symmetric subset (e.g. the two swapped markers equidistant
@@ -1634,14 +1782,21 @@ class OnlineJoint:
                     keep = np.delete(np.arange(idx.size), drop)
                     Rk, dk = _kabsch(y[keep], x[keep])
                     ss = float(np.sum((x[keep] @ Rk.T + dk - y[keep]) ** 2))
-                    if ss > gate_var[k] * (3 * keep.size - 6):
-                        continue
+                    if ss > gate_var[k] * (3 * keep.size - 6):  # else it fits as well as ever
+                        lk, code = (y[keep] - dk) @ Rk, marker_code(idx[keep])
+                        jump, stale = seg.shape.jump(idx[keep], lk, frame_no, code)
+                        last = seg.shape.jump(idx[keep], lk, frame_no, code, last=True)[0]
+                        if gate_fails(jump, stale, True, *self._jump_limits(k), last):
+                            continue
                     if active[k] and _cos_turn(Rk, self._R_ref[k]) < _COS_MAX_TURN:
                         continue
                     if best is None or ss < best[0]:
                         best = (ss, drop)
                 if best is not None:
                     break  # as few markers left out as possible
+            seg.gated_frames += 1
+            if self.gate_log is not None:
+                self.gate_log.append((frame_no, k, np.nan if stamp is None else stamp))
             if best is None:
                 out[k, : seg.n_markers] = True
                 self._drop(f"{seg.name}_gated")
@@ -1656,12 +1811,14 @@ class OnlineJoint:
         stamp: float | None,
         frame_no: int,
         counted: tuple[bool, bool] = (False, False),
+        refit: bool = False,
     ) -> JointOutput | None:
         """Pose both segments from ``self._Y`` (filled, ``missing`` rows NaN) and update the statistics.
 
         ``frame_no``: the frame's number (1-based count of the frames seen, for the gate's turn
         test). ``counted``: segments already counted as not posed for this frame (a refit after
-        the gate).
+        the gate). ``refit``: the call after the gate left markers out (the frame's markers
+        before the gate are kept for the next frame's test by the first call only).
         """
         assert self._parent is not None and self._child is not None
         ps = self._pair(missing)
@@ -1678,10 +1835,8 @@ class OnlineJoint:
         R, d, ss = _poses(Y, ps)
         gate_var = self._gate_var()
         if gate_var is not None:
-            dof = ps.dof
-            # scalar tests: this runs every frame
-            fail_p = bool(ss[0] > gate_var[0] * dof[0] and dof[0] > 0.0)
-            fail_c = bool(ss[1] > gate_var[1] * dof[1] and dof[1] > 0.0)
+            local, jumps, fails = self._shape_tests(ps, R, d, ss, gate_var, frame_no, refit)
+            fail_p, fail_c = fails
             active = self._turn_active(frame_no)
             turned = [False, False]
             labels: list[NDArray[np.intp] | None] = [None, None]
@@ -1691,7 +1846,7 @@ class OnlineJoint:
                     if not active[k] or vs is None or not (fail or cos[k] < _COS_MAX_TURN):
                         continue
                     # (here: a refit clears the markers it leaves out)
-                    labels[k] = self._relabelling(k, vs)
+                    labels[k] = self._relabelling(k, vs, frame_no)
                     # a rigid turn that is not a relabelling: the segment jumped (the recording
                     # restarts, another subject): no swap to hold out, the reference starts afresh
                     turned[k] = bool(cos[k] < _COS_MAX_TURN) and (fail or labels[k] is not None)
@@ -1702,17 +1857,27 @@ class OnlineJoint:
                     for k, (vs, lab) in enumerate(((ps.parent, labels[0]), (ps.child, labels[1])))
                     if failed[k] and vs is not None and lab is not None
                 ]
-                gated = self._gated(missing, ps, np.array(failed), active)
-                out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None))
+                gated = self._gated(missing, ps, np.array(failed), active, frame_no, stamp)
+                out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None), refit=True)
                 # a segment held out whose markers are its reference's relabelled (a swap): the
                 # reference follows the limb through the swap
                 for k, vs, y, lab in follow:
                     if self._ref_frame[k] != frame_no:
                         self._follow(k, y, vs, lab, frame_no)
+                for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
+                    lk = local[k]
+                    if failed[k] and vs is not None and lk is not None:
+                        seg.shape.failed(vs.index, lk, frame_no, vs.code)  # provisional reference
+                if not refit:
+                    self._seen(ps, local, frame_no)
                 return out
-            for k, vs in enumerate((ps.parent, ps.child)):
-                if vs is not None:
+            for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
+                lk = local[k]
+                if vs is not None and lk is not None:
                     self._set_reference(k, R[k], d[k], frame_no)
+                    seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code)
+            if not refit:
+                self._seen(ps, local, frame_no)
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view

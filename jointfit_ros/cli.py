@@ -27,7 +27,9 @@ Everything is computed before anything is written, and every file is written
 to a temporary name and renamed: a failed run leaves ``DIR`` as it was.
 
 Exit status: 0 every joint identified; 3 the outputs were written but some
-joint has no identifiable estimate (the summary and the figure say why);
+joint has no identifiable estimate, or the outlier gate rejected more than
+10 % of a segment's frames (the one-line summary, the summary and the figure
+say why);
 1 bad input or configuration (one line on stderr, nothing written); 2 bad
 arguments; 130 interrupted.
 """
@@ -131,8 +133,12 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
     else:
         est = "direction_parent (" + ", ".join(f"{v:.3f}" for v in joint["direction_parent"]) + ")"
         est += f" sd {joint['direction_sd_deg_parent']:.2g} deg, pointing {joint['axis_points']}"
-    verdict = "" if joint["status"] == "ok" else f"; NOT identifiable: {joint['reason']}"
-    return f"{name}: {est}, rms {joint['rms_residual']:.3g} {unit}, {joint['frames_in_window']} frames{verdict}"
+    verdict = "" if joint["identifiable"] else f"; NOT identifiable: {joint['reason']}"
+    if joint.get("gate_warning"):
+        verdict += f"; WARNING: {joint['gate_warning']}"
+    gated = joint["gated"]
+    share = f"gated {gated['parent']['percent']:.2g} % parent, {gated['child']['percent']:.2g} % child"
+    return f"{name}: {est}, rms {joint['rms_residual']:.3g} {unit}, {joint['frames_in_window']} frames, {share}{verdict}"
 
 
 def fit_main(argv: Sequence[str]) -> int:
@@ -201,7 +207,8 @@ def fit_main(argv: Sequence[str]) -> int:
               + (f", {len(figures)} figure(s)" if figures else "") + (", report.html" if opts.html else "") + ")")
         for path in installed:
             print(f"installed calibration {path}")
-    return 0 if len(calibrations) == len(run.traces) else 3
+    warned = any(j.get("gate_warning") for j in summary["joints"])
+    return 0 if len(calibrations) == len(run.traces) and not warned else 3
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -346,6 +346,14 @@ def _checkpoint(traces: list[JointTrace]) -> None:
             t.checkpoints.append(checkpoint_of(t.runner.counters["frames"], t.runner.estimator.solution))
 
 
+def _traces(cfg: NodeConfig) -> list[JointTrace]:
+    """A trace per joint, its estimator logging the frames the outlier gate rejects (the report marks them)."""
+    traces = [JointTrace(JointRunner(j, cfg)) for j in cfg.joints]
+    for t in traces:
+        t.runner.estimator.gate_log = []
+    return traces
+
+
 def run_fit(
     path: str | os.PathLike[str],
     cfg: NodeConfig,
@@ -405,7 +413,7 @@ def run_fit(
     if kind == "bag":
         run_cfg = _offline_config(cfg, whole_recording)
         run = FitRun(file, kind, run_cfg, [])
-        run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
+        run.traces = _traces(run_cfg)
         run.router = MessageRouter(run_cfg, [t.runner for t in run.traces])
         if keep_frames:
             run.router.recorded = []
@@ -428,7 +436,7 @@ def run_fit(
         total = data.n_frames
         run_cfg = _offline_config(cfg, whole_recording)
         run = FitRun(file, kind, run_cfg, [], units=data.units, rate=data.rate)
-        run.traces = [JointTrace(JointRunner(j, run_cfg)) for j in run_cfg.joints]
+        run.traces = _traces(run_cfg)
         step = max(1, total // max(n_checkpoints, 1))
         events = _marker_events(run, data, step)
     tick = max(1, total // 100)

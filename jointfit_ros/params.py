@@ -349,8 +349,10 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "outlier_gate",
         "double",
         5.0,
-        "Outlier gate: a segment whose rms marker residual exceeds this many times its noise estimate loses its "
-        "worst marker (down to 3) or is not posed in that frame (swaps, ghosts, jumps); 0: off.",
+        "Outlier gate: a segment whose markers jump by more than this many times their normal frame-to-frame "
+        "change (or fail the residual test, this many times the noise, while moving more than usual) loses its "
+        "worst marker (down to 3) or is not posed in that frame (swaps, ghosts, jumps; smooth skin motion passes); "
+        "0: off.",
         minimum=0.0,
         maximum=1e3,
     ),
@@ -431,6 +433,13 @@ class JointConfig:
     axis_from_marker: str = ""
     publish_unidentified: bool = False
     freeze_unidentified: bool = False
+
+    def segment_names(self) -> tuple[str, str]:
+        """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
+        return (
+            f"parent ({', '.join(self.parent_markers) or self.parent_pose_topic})",
+            f"child ({', '.join(self.child_markers) or self.child_pose_topic})",
+        )
 
     def window_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of :class:`jointfit_core.estimator.OnlineJoint` for the window."""

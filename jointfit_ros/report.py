@@ -38,12 +38,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointfit_core.errors import MissingDependencyError
+from jointfit_core.gate import gated_verdict
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.pose import poses_from_markers
 from jointfit_core.segments import PoseSumsCentre
 
 from .bag_blocks import can_fork
 from .offline import FitRun, JointTrace
+from .runner import JointRunner
 
 __all__ = [
     "fit_summary",
@@ -170,16 +172,19 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
         "dropped": dict(sorted(est.dropped.items())),
         "absurd_markers": r.counters["absurd_markers"],
     }
+    out["gated"] = gated_share(r)
     if r.cfg.type == "hinge":
         out["axis_points"] = r.axis_words()
     if sol is None:
         out["status"] = "no estimate"
         out["message"] = r.last_error or est.status() or "too few frames"
         return out
-    out["status"] = "ok" if sol.identifiable else "not identifiable"
+    warning = gate_warning(r)
+    out["status"] = ("outlier gate" if warning else "ok") if sol.identifiable else "not identifiable"
     out["identifiable"] = bool(sol.identifiable)
     out["reason"] = sol.reason
-    out["message"] = sol.reason if not sol.identifiable else ""
+    out["message"] = sol.reason if not sol.identifiable else warning
+    out["gate_warning"] = warning
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
     if isinstance(sol, PoseSumsCentre):
@@ -212,6 +217,21 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     return out
 
 
+def gated_share(r: JointRunner) -> dict[str, dict[str, float]]:
+    """Per segment (``parent``, ``child``): the frames the outlier gate rejected, their number and percent of the frames taken."""
+    est = r.estimator
+    seen = est.n_frames_seen
+    return {
+        side: {"frames": n, "percent": round(100.0 * n / seen, 2) if seen else 0.0}
+        for side, n in zip(("parent", "child"), est.gated_frames, strict=True)
+    }
+
+
+def gate_warning(r: JointRunner) -> str:
+    """:func:`~jointfit_core.gate.gated_verdict` of a joint (empty when no segment lost more than 10 % of its frames)."""
+    return gated_verdict(r.estimator.gated_frames, r.estimator.n_frames_seen, r.cfg.segment_names())
+
+
 def fit_summary(
     run: FitRun, *, elapsed_s: float, version: str, geos: Mapping[str, SegmentGeometry | None] | None = None
 ) -> dict[str, Any]:
@@ -235,7 +255,10 @@ def fit_summary(
         message counters) and ``joints``: per joint its estimate in the
         parent and the child segment frames (the frames of the templates the
         calibration file stores) with covariances (units squared) and
-        standard deviations, the rms residuals, the verdict and the counters.
+        standard deviations, the rms residuals, the verdict, the counters and
+        ``gated``: per segment the frames the outlier gate rejected (number
+        and percent); above 10 % of a segment's frames ``status`` is
+        ``"outlier gate"`` and ``gate_warning`` says which.
     """
     return {
         "jointfit_version": version,
@@ -392,13 +415,28 @@ def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | Pose
             handle.set_markersize(6)
 
 
-def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, unit: str) -> None:
+def gated_times(run: FitRun, trace: JointTrace) -> tuple[FloatArray, FloatArray]:
+    """Times (s from the first frame) of the frames in which the parent and the child failed the outlier gate."""
+    log = trace.runner.estimator.gate_log or []
+    t0 = float(run.stamps[0]) if run.stamps.size else 0.0
+    out = []
+    for side in (0, 1):
+        out.append(np.array([stamp for _, k, stamp in log if k == side], dtype=np.float64) - t0)
+    return out[0], out[1]
+
+
+def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, unit: str, run_: FitRun) -> None:
     cfg = trace.runner.cfg
     run = 1
     for res, names, style in ((geo.residual_parent, cfg.parent_markers, "-"), (geo.residual_child, cfg.child_markers, "--")):
         for k, name in enumerate(names):
             line = {"linestyle": style, "lw": 0.8, "label": name}
             run = _plot_series(ax, geo.t, res[:, k], line, line, {"linestyle": "none", "marker": ".", "ms": 2})
+    share = gated_share(trace.runner)
+    for side, times, y, colour in zip(("parent", "child"), gated_times(run_, trace), (0.02, 0.06), ("C3", "C1"), strict=True):
+        if times.size:  # rug of the gated frames along the bottom of the panel
+            ax.plot(times, np.full(times.size, y), "|", color=colour, ms=6, transform=ax.get_xaxis_transform(),
+                    label=f"{side} gated ({share[side]['percent']:.1f} %)")
     shown = "every frame" if run == 1 else f"median (lines) and maximum (dots) of every {run} frames"
     ax.set_xlabel("time (s)")
     ax.set_ylabel(f"marker to posed template ({unit})")
@@ -489,7 +527,14 @@ def _headline(trace: JointTrace, unit: str) -> str:
     if sol is None:
         return f"{head}: no estimate: {r.last_error or r.estimator.status()}"
     verdict = "identifiable" if sol.identifiable else f"NOT identifiable: {sol.reason}"
-    frames = f"{sol.n_frames} frames, rms constraint residual {sol.rms:.3g} {unit}"
+    share = gated_share(r)
+    frames = (
+        f"{sol.n_frames} frames, rms constraint residual {sol.rms:.3g} {unit}, outlier gate: parent "
+        f"{share['parent']['percent']:.1f} %, child {share['child']['percent']:.1f} % of the frames"
+    )
+    warning = gate_warning(r)
+    if warning:
+        verdict += f"\nWARNING: {warning.split(': the estimate')[0]}"
     if isinstance(sol, PoseSumsCentre):
         c, s = sol.centre_parent, _sd(sol.cov_parent)
         est = "centre (parent frame) = (" + ", ".join(f"{v:.4g}" for v in c) + ") +- (" + ", ".join(f"{v:.2g}" for v in s) + f") {unit}"
@@ -518,7 +563,7 @@ def joint_figure(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeome
         sol = trace.final
         if geo is not None and sol is not None:
             _draw_trajectories(fig.add_subplot(grid[0, 0], projection="3d"), geo, sol, trace.runner.cfg.child_markers, unit)
-            _draw_marker_residuals(fig.add_subplot(grid[0, 1]), geo, trace, unit)
+            _draw_marker_residuals(fig.add_subplot(grid[0, 1]), geo, trace, unit, run)
         else:
             for k in range(2):
                 ax = fig.add_subplot(grid[0, k])
