@@ -143,6 +143,21 @@ def output_sane(out: JointOutput, limit: float) -> bool:
     return bool(np.abs(out.position).max() <= limit and np.diag(out.cov).max() <= limit**2)
 
 
+#: Fully visible frames compared with a loaded calibration's templates (:meth:`JointRunner._check_layout`).
+LAYOUT_FRAMES = 10
+
+
+def _distance_errors(y: FloatArray, template: FloatArray) -> FloatArray:
+    """|d_ij(y) - d_ij(template)| over the marker pairs i < j of one segment (input units)."""
+    i, j = np.triu_indices(template.shape[0], 1)
+    out: FloatArray = np.abs(np.linalg.norm(y[i] - y[j], axis=1) - np.linalg.norm(template[i] - template[j], axis=1))
+    return out
+
+
+def _rms_radius(template: FloatArray) -> float:
+    return float(np.sqrt(((template - template.mean(axis=0)) ** 2).sum(axis=1).mean()))
+
+
 def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
     """The window and estimator settings of a calibration file that differ from the configuration, in words."""
     wanted = {"window": None, "window_s": None, "half_life_s": None, **cfg.window_kwargs()}
@@ -203,6 +218,8 @@ class JointRunner:
         self.last_error = ""
         self.loaded_from: str = ""
         self.load_notes: list[str] = []  # said once at start: settings of the file that differ, files cleaned
+        self._layout_frames = False  # a loaded calibration's templates are still to be compared with live markers
+        self._layout_seen: list[FloatArray] = []
         self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
         self._last_solve = -math.inf
@@ -275,10 +292,51 @@ class JointRunner:
             return
         self.load_notes += _settings_differences(data, self.cfg)
         self.estimator = est
+        self._layout_frames = True  # until the live markers are compared with the templates
         self._sign_fixed = True  # the saved estimate carries its sign
         if self.cfg.axis_toward_marker:
             self.sign_text = f"{self._sign_words()} (as saved in {path})"
         self.loaded_from = str(path)
+
+    def _check_layout(self, parent: FloatArray, child: FloatArray) -> None:
+        """Compare a loaded calibration's templates with the first fully visible frames; refuse a changed set-up.
+
+        A file from before marker names were recorded, or markers moved on the
+        subject since, cannot be recognised from the file alone: its
+        templates' inter-marker distances must match those of the live
+        markers (median over :data:`LAYOUT_FRAMES` fully visible frames, within
+        20 % of the cluster's rms radius plus 6 noise sd: skin motion passes,
+        a swapped or moved marker does not). A mismatch discards the loaded
+        estimate (the file is kept untouched) and the joint estimates anew.
+        """
+        templates = self.estimator.templates
+        for k, y in enumerate((parent, child)):
+            tpl = templates[k]
+            if tpl is None or y.shape != tpl.shape or not np.isfinite(y).all():
+                return
+        self._layout_seen.append(
+            np.concatenate([_distance_errors(y, t) for y, t in zip((parent, child), templates, strict=True)])  # type: ignore[arg-type]
+        )
+        if len(self._layout_seen) < LAYOUT_FRAMES:
+            return
+        self._layout_frames = False
+        error = np.median(np.stack(self._layout_seen), axis=0)
+        self._layout_seen = []
+        sigma = max(self.estimator.noise_std)
+        tol = 0.2 * min(_rms_radius(t) for t in templates) + 6.0 * sigma  # type: ignore[arg-type]
+        if error.max() <= tol:
+            return
+        path = self.loaded_from
+        self.estimator = self._new_estimator()
+        self._sign_fixed = not self.cfg.axis_toward_marker
+        self.sign_text = ""
+        self.loaded_from = ""
+        self._unloadable = True
+        self.last_error = (
+            f"calibration file {path} discarded (kept as it is): the live markers' distances differ from its "
+            f"templates' by up to {error.max():.3g} (tolerance {tol:.3g}): markers reordered, renamed or moved "
+            "since it was saved; estimating anew"
+        )
 
     def _identity(self) -> dict[str, Any]:
         """What a calibration file records of the joint it was made for (checked on load)."""
@@ -465,6 +523,8 @@ class JointRunner:
         :attr:`last_error`.
         """
         stamp = stamp_ns * 1e-9
+        if self._layout_frames:
+            self._check_layout(parent, child)
         try:
             out = self.estimator.update(parent, child, stamp)
         except InputError as exc:
@@ -608,6 +668,7 @@ class JointRunner:
         self.estimator = self._new_estimator()
         self._sign_fixed = not self.cfg.axis_toward_marker
         self.sign_text = self.sign_problem = ""
+        self._layout_frames, self._layout_seen = False, []
         if self.matcher is not None:
             self.matcher.clear()
         for key in self.counters:

@@ -153,3 +153,33 @@ def test_stale_temporaries_are_removed_and_nothing_else(tmp_path: Path) -> None:
     assert all(p.exists() for p in [fresh, *others, target])
     runner = _runner(target)  # the runner cleans at start (here: nothing left to clean)
     assert runner.load_notes == [] and fresh.exists()
+
+
+def _frames(seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    motion = two_segment_motion(rng, kind="ball")
+    t = np.arange(1500) / 100.0
+    yp, yc = motion.markers_at(t)
+    return np.concatenate([yp, yc], axis=1) + rng.normal(0.0, 0.5, (t.size, 8, 3)), t
+
+
+@pytest.mark.parametrize("changed", [False, True])
+def test_a_file_without_names_is_checked_against_the_live_markers(tmp_path: Path, saved: dict[str, Any],
+                                                                  changed: bool) -> None:
+    """An old file (no marker names) whose markers no longer match: discarded after the first frames, kept on disk."""
+    old = {k: v for k, v in saved.items() if k not in ("joint", "parent_markers", "child_markers",
+                                                       "parent_pose_topic", "child_pose_topic")}
+    path = tmp_path / "hip.yaml"
+    save_calibration(path, old)
+    before = path.read_bytes()
+    order = [NAMES[1], NAMES[0], NAMES[2], NAMES[3]] if changed else NAMES[:4]  # two pelvis markers swapped
+    runner = _runner(path, **{"hip.parent_markers": order})
+    assert runner.estimator.frozen
+    frames, t = _frames()
+    for k in range(30):
+        runner.markers_frame(int((100.0 + t[k]) * 1e9), frames[k])
+    assert runner.estimator.frozen is (not changed)
+    if changed:
+        assert "discarded (kept as it is)" in runner.last_error and "differ from its templates" in runner.last_error
+        assert runner.loaded_from == ""
+    assert path.read_bytes() == before
