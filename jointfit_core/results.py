@@ -150,6 +150,16 @@ class SegmentsCentreFit(_Frozen):
     method : str
         ``"poses"`` (Stoddart) or ``"sphere"`` (child markers in the parent
         frame, Gamage-Lasenby).
+    cov_parent_statistical, cov_child_statistical : ndarray, shape (3, 3), or None
+        Skin markers: the part of ``cov_parent`` / ``cov_child`` from white
+        noise and the residuals (it shrinks with more data); the rest is the
+        soft-tissue prior's (:mod:`jointfit_core.artefact`). None for rigid
+        markers, where the whole covariance is statistical.
+    attachment : (str, str)
+        ``"skin"`` or ``"rigid"`` for the parent and the child markers.
+    artefact_scale : (float, float)
+        Estimated rms cluster shift on the bone per radian of joint rotation,
+        parent and child (input units; 0 for rigid markers or none seen).
     """
 
     centre_parent: FloatArray
@@ -168,6 +178,10 @@ class SegmentsCentreFit(_Frozen):
     noise_std_parent: float
     noise_std_child: float
     method: str
+    cov_parent_statistical: FloatArray | None = None
+    cov_child_statistical: FloatArray | None = None
+    attachment: tuple[str, str] = ("rigid", "rigid")
+    artefact_scale: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,6 +209,11 @@ class SegmentsAxisFit(_Frozen):
         the child's axis line; NaN where either could not be posed.
     rms, n_frames, identifiable, reason, noise_std_parent, noise_std_child
         As in :class:`SegmentsCentreFit`.
+    cov_direction_parent_statistical, cov_point_parent_statistical : ndarray, shape (3, 3), or None
+        Skin markers: the statistical part of ``cov_direction_parent`` /
+        ``cov_point_parent`` (as in :class:`SegmentsCentreFit`); None for rigid markers.
+    attachment, artefact_scale
+        As in :class:`SegmentsCentreFit`.
     """
 
     direction_parent: FloatArray
@@ -216,6 +235,10 @@ class SegmentsAxisFit(_Frozen):
     reason: str
     noise_std_parent: float
     noise_std_child: float
+    cov_direction_parent_statistical: FloatArray | None = None
+    cov_point_parent_statistical: FloatArray | None = None
+    attachment: tuple[str, str] = ("rigid", "rigid")
+    artefact_scale: tuple[float, float] = (0.0, 0.0)
 
 
 __all__ += ["MinimalCentreFit", "MinimalAxisFit"]

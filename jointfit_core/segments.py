@@ -28,6 +28,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from .artefact import (
+    ArtefactCovariance,
+    artefact_covariance,
+    check_attachment,
+    deformation_weights,
+    joint_features,
+    white_noise_std,
+)
 from .checks import check_markers, check_vector3
 from .errors import InputError, NotIdentifiableError
 from .identifiability import check_marker_counts
@@ -609,6 +617,7 @@ class _Prepared:
     Q: FloatArray  # (N, 3, 3), NaN where not both posed
     t: FloatArray  # (N, 3)
     both: BoolArray  # (N,) frames used: both segments posed, and well enough
+    pooled: tuple[float, float]  # pooled pose-fit residual noise (parent, child), deformation included
 
     @property
     def length_scale(self) -> float:
@@ -642,7 +651,7 @@ def _check_segment(arr: FloatArray, name: str, kind: str) -> FloatArray:
     return arr
 
 
-def _prepare(parent: ArrayLike, child: ArrayLike, kind: str) -> _Prepared:
+def _prepare(parent: ArrayLike, child: ArrayLike, kind: str, white: bool = False) -> _Prepared:
     yp = check_markers(parent, name="parent")
     yc = check_markers(child, name="child")
     # Marker counts that cannot identify the joint at all (Pham et al., sections III-IV) raise with the reason.
@@ -671,6 +680,12 @@ def _prepare(parent: ArrayLike, child: ArrayLike, kind: str) -> _Prepared:
         )
     sp = noise_std_from_fit(yp, tp, pp)
     sc = noise_std_from_fit(yc, tc, pc)
+    pooled = (sp, sc)
+    if white:  # skin markers: the pooled residual holds the cluster's deformation; keep only the white noise
+        wp = white_noise_std(yp, tp, pp.R_world_local, pp.d_world_local, pp.valid)
+        wc = white_noise_std(yc, tc, pc.R_world_local, pc.d_world_local, pc.valid)
+        sp = min(sp, wp) if np.isfinite(wp) else sp
+        sc = min(sc, wc) if np.isfinite(wc) else sc
     good_p = _well_posed(tp, pp, sp)
     good_c = _well_posed(tc, pc, sc)
     used = both & good_p & good_c
@@ -681,7 +696,7 @@ def _prepare(parent: ArrayLike, child: ArrayLike, kind: str) -> _Prepared:
             f"child {int(good_c.sum())}); the visible markers are nearly collinear or too close together for "
             "the marker noise: use larger, non-collinear marker clusters"
         )
-    return _Prepared(yp, yc, tp, tc, pp, pc, sp, sc, Q, t, used)
+    return _Prepared(yp, yc, tp, tc, pp, pc, sp, sc, Q, t, used, pooled)
 
 
 def _well_posed(template: FloatArray, poses: Poses, sigma: float) -> BoolArray:
@@ -873,6 +888,33 @@ def _model_error_inflation(
     return residual_inflation(z, 6)
 
 
+def _centre_artefact(
+    prep: _Prepared,
+    Q: FloatArray,
+    t: FloatArray,
+    c_p: FloatArray,
+    c_c: FloatArray,
+    Wp6: FloatArray,
+    Wc6: FloatArray,
+    attachment: tuple[str, str],
+) -> ArtefactCovariance:
+    """The centre's statistical and soft-tissue covariance (skin markers; :func:`artefact_covariance`).
+
+    Residual ``h_t = c_p - Q_t c_c - t_t``, Jacobian ``[I, -Q_t]`` in ``(c_p, c_c)``, and with
+    respect to a cluster motion ``(omega_p, u_p, omega_c, u_c)`` on the bone ``[-[c_p]x, I,
+    Q_t [c_c]x, -Q_t]`` (the noise Jacobian of eq. 14, the same perturbation).
+    """
+    n = Q.shape[0]
+    h = c_p[None, :] - np.einsum("nij,j->ni", Q, c_c) - t
+    J = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), -Q], axis=2)
+    D = np.concatenate(
+        [np.broadcast_to(-skew(c_p), (n, 3, 3)), np.broadcast_to(np.eye(3), (n, 3, 3)), Q @ skew(c_c), -Q], axis=2
+    )
+    W = _constraint_cov(Q, c_p, c_c, Wp6, Wc6)
+    weights = deformation_weights(prep.pooled, (prep.sigma_parent, prep.sigma_child), attachment)
+    return artefact_covariance(h, J, D, W, joint_features(Q), (prep.template_parent, prep.template_child), weights)
+
+
 def _whitened(r: FloatArray, W: FloatArray) -> FloatArray:
     """Per frame ``W^(-1/2) r`` (``r`` (N, k), ``W`` (N, k, k)), with the symmetric square root.
 
@@ -910,6 +952,7 @@ def fit_centre_two_segments(
     method: str = "poses",
     weighted: bool = True,
     model_error: bool = True,
+    attachment: str | tuple[str, str] = "skin",
 ) -> SegmentsCentreFit:
     """Ball-joint centre between two moving segments (Stoddart et al. 1999).
 
@@ -937,6 +980,20 @@ def fit_centre_two_segments(
         tissue artefact on real skin markers widens it; about 1 on data that
         follow the noise model. ``False`` gives the pure noise-propagated
         covariance of Stoddart's eq. (23).
+    attachment : {"skin", "rigid"} or (str, str)
+        How the markers are attached, for both segments or (parent, child).
+        ``"skin"`` (default, marker clusters on skin): the marker noise is
+        read from the second differences of the pose-fit residuals
+        (:func:`jointfit_core.artefact.white_noise_std`), so that the
+        cluster's deformation is not taken for noise in the weights and the
+        bias compensation, and with ``model_error`` the covariance is
+        ``cov_statistical + cov_artefact``
+        (:func:`jointfit_core.artefact.artefact_covariance`): a soft-tissue
+        prior on the clusters' motion on the bone, along the directions it
+        can bias, scaled from the residuals, plus the residuals' effect with
+        their autocorrelation. ``"rigid"`` (robots, markers on rigid bodies,
+        bone pins): the pooled residual noise and the inflation by the
+        residuals' excess and lag-1 correlation, as before.
 
     Returns
     -------
@@ -1040,7 +1097,9 @@ def fit_centre_two_segments(
     """
     if method not in _METHODS:
         raise InputError(f"method: expected one of {_METHODS}, got {method!r}")
-    prep = _prepare(parent, child, "ball")
+    att = check_attachment(attachment)
+    skin = "skin" in att and method == "poses"
+    prep = _prepare(parent, child, "ball", white=skin)
     used = prep.both
     Q, t = prep.Q[used], prep.t[used]
     n = float(used.sum())
@@ -1064,12 +1123,20 @@ def fit_centre_two_segments(
         noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
         a, cov = _gauss_markov_centre(Q, t, noise_p, noise_c, Wp6, Wc6, a)
     c_p, c_c = a[:3], a[3:]
-    if model_error:
+    stat: FloatArray | None = None
+    scale = (0.0, 0.0)
+    if model_error and skin and prep.noisy:
+        parts = _centre_artefact(prep, Q, t, c_p, c_c, Wp6, Wc6, att)
+        cov, stat, scale = parts.total, parts.statistical, (float(parts.scale[0]), float(parts.scale[1]))
+    elif model_error:
         cov = cov * _model_error_inflation(prep, c_p, c_c, Wp6_mean, Wc6_mean).factor
     cov_parent, cov_child = cov[:3, :3], cov[3:, 3:]
     centre_world, cov_world, residual = _world_outputs(prep, c_p, c_c, cov_parent)
+    # Identifiability is about the motion: judged on the part of the covariance that more or better
+    # movement reduces (the soft-tissue part does not shrink with the data).
+    v_parent, v_child = (cov_parent, cov_child) if stat is None else (stat[:3, :3], stat[3:, 3:])
     identifiable, reason = _centre_verdict(
-        _motion_of(prep, Q), cov_parent, cov_child, c_p, c_c, prep.length_scale
+        _motion_of(prep, Q), v_parent, v_child, c_p, c_c, prep.length_scale
     )
     return SegmentsCentreFit(
         centre_parent=c_p,
@@ -1088,6 +1155,10 @@ def fit_centre_two_segments(
         noise_std_parent=prep.sigma_parent,
         noise_std_child=prep.sigma_child,
         method="poses",
+        cov_parent_statistical=None if stat is None else stat[:3, :3],
+        cov_child_statistical=None if stat is None else stat[3:, 3:],
+        attachment=att,
+        artefact_scale=scale,
     )
 
 
@@ -1208,15 +1279,7 @@ def _hinge_psi(
     M = np.concatenate([np.broadcast_to(np.eye(3), Q.shape), -Q], axis=-1)  # (..., 3, 6)
     J[..., 2:, 4:] = M @ Z
 
-    # Noise Jacobian w.r.t. (omega_p, u_p) and (omega_c, u_c), local frames, rotations about the origin.
-    Gp = np.zeros((*lead, 5, 6))
-    Gc = np.zeros((*lead, 5, 6))
-    Gp[..., :2, 0:3] = Bp.T @ skew(Qn)
-    Gc[..., :2, 0:3] = -Bp.T @ Q @ skew(n_c)
-    Gp[..., 2:, 0:3] = -skew(c_p)
-    Gp[..., 2:, 3:6] = np.eye(3)
-    Gc[..., 2:, 0:3] = Q @ skew(c_c)
-    Gc[..., 2:, 3:6] = -Q
+    Gp, Gc = _hinge_noise_jacobian(Q, st, Bp)
     W = Gp @ Wp6 @ np.swapaxes(Gp, -1, -2) + Gc @ Wc6 @ np.swapaxes(Gc, -1, -2)
     Jt = np.swapaxes(J, -1, -2)
     psi = (
@@ -1225,6 +1288,25 @@ def _hinge_psi(
         else np.einsum("...ij,...j->...i", Jt, res)
     )
     return res, J, W, psi
+
+
+def _hinge_noise_jacobian(Q: FloatArray, st: _HingeState, Bp: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Jacobians (..., 5, 6) of the hinge residual w.r.t. ``(omega_p, u_p)`` and ``(omega_c, u_c)``.
+
+    Small pose errors (or cluster motions on the bone) in the local frames, rotations about the origin.
+    """
+    lead = Q.shape[:-2]
+    c_p, c_c = st.a[:3], st.a[3:]
+    Qn = np.einsum("...ij,j->...i", Q, st.n_c)
+    Gp = np.zeros((*lead, 5, 6))
+    Gc = np.zeros((*lead, 5, 6))
+    Gp[..., :2, 0:3] = Bp.T @ skew(Qn)
+    Gc[..., :2, 0:3] = -Bp.T @ Q @ skew(st.n_c)
+    Gp[..., 2:, 0:3] = -skew(c_p)
+    Gp[..., 2:, 3:6] = np.eye(3)
+    Gc[..., 2:, 0:3] = Q @ skew(c_c)
+    Gc[..., 2:, 3:6] = -Q
+    return Gp, Gc
 
 
 def _hinge_step(
@@ -1296,6 +1378,7 @@ def fit_axis_two_segments(
     reference_direction: ArrayLike | None = None,
     weighted: bool = True,
     model_error: bool = True,
+    attachment: str | tuple[str, str] = "skin",
 ) -> SegmentsAxisFit:
     """Hinge axis between two moving segments from their rigid poses.
 
@@ -1320,6 +1403,12 @@ def fit_axis_two_segments(
         their frame-to-frame correlation, as for the ball joint:
         :func:`jointfit_core.model_error.residual_inflation`), so that skin
         motion does not leave them over-confident.
+    attachment : {"skin", "rigid"} or (str, str)
+        As in :func:`fit_centre_two_segments`: ``"skin"`` (default) reads
+        the white noise from the residuals' second differences and, with
+        ``model_error``, gives ``cov_statistical + cov_artefact`` over the 9
+        hinge parameters (:func:`jointfit_core.artefact.artefact_covariance`);
+        ``"rigid"`` the previous inflation.
 
     Returns
     -------
@@ -1385,7 +1474,9 @@ def fit_axis_two_segments(
     ``residual`` is the distance of the parent-carried axis point from the
     child-carried axis line.
     """
-    prep = _prepare(parent, child, "hinge")
+    att = check_attachment(attachment)
+    skin = "skin" in att
+    prep = _prepare(parent, child, "hinge", white=skin)
     used = prep.both
     Q, t = prep.Q[used], prep.t[used]
     n = float(used.sum())
@@ -1421,7 +1512,17 @@ def fit_axis_two_segments(
     noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
     use_weights = weighted and prep.noisy
     st, cov, (Bp, Bc, Z) = _hinge_solve(Q, t, st, noise_p, noise_c, Wp6, Wc6, use_weights)
-    if model_error and prep.noisy:
+    stat: FloatArray | None = None
+    scale = (0.0, 0.0)
+    if model_error and prep.noisy and skin:
+        res, J, W, _ = _hinge_psi(Q, t, st, (Bp, Bc, Z), Wp6, Wc6, False)
+        D = np.concatenate(_hinge_noise_jacobian(Q, st, Bp), axis=-1)
+        weights = deformation_weights(prep.pooled, (prep.sigma_parent, prep.sigma_child), att)
+        parts = artefact_covariance(
+            res, J, D, W, joint_features(Q), (prep.template_parent, prep.template_child), weights
+        )
+        cov, stat, scale = parts.total, parts.statistical, (float(parts.scale[0]), float(parts.scale[1]))
+    elif model_error and prep.noisy:
         cov = cov * _hinge_model_error(Q, t, st, (Bp, Bc, Z), Wp6, Wc6, used).factor
     n_p, n_c = st.n_p, st.n_c
     if n_p @ ref < 0.0:  # cannot flip in a few small steps, but keep the promise
@@ -1443,6 +1544,15 @@ def fit_axis_two_segments(
     Jpc[:, 4:] = (np.eye(3) - np.outer(st.n_c, st.n_c)) @ Z[3:]
     cov_pt_p = Jpp @ cov @ Jpp.T
     cov_pt_c = Jpc @ cov @ Jpc.T
+    stat_dir_p = stat_pt_p = None
+    v_dir = (cov_dir_p, cov_dir_c, cov_pt_p, cov_pt_c)
+    if stat is not None:
+        stat_dir_p = P_p @ Bp @ stat[:2, :2] @ Bp.T @ P_p
+        stat_dir_p = 0.5 * (stat_dir_p + stat_dir_p.T)
+        stat_pt_p = Jpp @ stat @ Jpp.T
+        stat_pt_p = 0.5 * (stat_pt_p + stat_pt_p.T)
+        # the verdict on the part that more movement reduces (see fit_centre_two_segments)
+        v_dir = (stat_dir_p, P_c @ Bc @ stat[2:4, 2:4] @ Bc.T @ P_c, stat_pt_p, Jpc @ stat @ Jpc.T)
 
     # World outputs and residuals.
     pp, pc = prep.poses_parent, prep.poses_child
@@ -1461,9 +1571,7 @@ def fit_axis_two_segments(
     residual = np.sqrt(np.einsum("ni,ni->n", perp, perp))
     residual[~used] = np.nan
 
-    identifiable, reason = _axis_verdict(
-        _motion_of(prep, Q), cov_dir_p, cov_dir_c, cov_pt_p, cov_pt_c, point_p, point_c, prep.length_scale
-    )
+    identifiable, reason = _axis_verdict(_motion_of(prep, Q), *v_dir, point_p, point_c, prep.length_scale)
     return SegmentsAxisFit(
         direction_parent=n_p,
         point_parent=point_p,
@@ -1484,6 +1592,10 @@ def fit_axis_two_segments(
         reason=reason,
         noise_std_parent=prep.sigma_parent,
         noise_std_child=prep.sigma_child,
+        cov_direction_parent_statistical=stat_dir_p,
+        cov_point_parent_statistical=stat_pt_p,
+        attachment=att,
+        artefact_scale=scale,
     )
 
 

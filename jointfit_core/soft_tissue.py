@@ -142,7 +142,7 @@ def _wobble(rng: np.random.Generator, t: FloatArray) -> FloatArray:
 
 def skin_markers_at(
     rng: np.random.Generator,
-    motion: TwoSegmentMotion,
+    motion: TwoSegmentMotion | JointMotion,
     times: ArrayLike,
     *,
     parent_mm: float = 0.0,
@@ -192,3 +192,127 @@ def skin_markers_at(
             world += rng.normal(0.0, noise_std, world.shape)
         out.append(world)
     return out[0], out[1]
+
+
+__all__ += ["JointMotion", "hip_motion", "knee_motion"]
+
+
+@dataclass(frozen=True)
+class JointMotion:
+    """A hip or knee movement with known bone truth, evaluable at any time (duck-types :class:`TwoSegmentMotion`).
+
+    Attributes
+    ----------
+    template_parent, template_child : ndarray, shape (Pa, 3) and (Pc, 3)
+        Marker coordinates in each bone frame (mm), centred at their centroids.
+    centre_parent, centre_child : ndarray, shape (3,)
+        Joint centre (hinge: a point of the axis) in the bone frames (mm).
+    axis : ndarray, shape (3,)
+        Hinge direction in both bone frames (unit; ``kind == "hinge"``).
+    kind : {"ball", "hinge"}
+    amplitude_deg : float
+        Hip: arc and circumduction amplitude; knee: the largest flexion.
+    period_s : float
+        Duration of one arc (out and back) or one circumduction / flexion cycle.
+    seed_phase : ndarray, shape (6,)
+        Phases of the slow parent wander (rotation +-5 deg, translation +-40 mm).
+    """
+
+    template_parent: FloatArray
+    template_child: FloatArray
+    centre_parent: FloatArray
+    centre_child: FloatArray
+    axis: FloatArray
+    kind: str
+    amplitude_deg: float
+    period_s: float
+    seed_phase: FloatArray
+
+    def joint_rotvec(self, times: ArrayLike) -> FloatArray:
+        """Rotation vector of the child bone relative to the parent bone, shape (N, 3), rad.
+
+        Ball (hip): eight star arcs (out along 0, 45, ..., 315 deg in the
+        flexion-abduction plane and back, one per ``period_s``), then
+        circumductions of the same amplitude (one per ``period_s``), repeated.
+        Hinge (knee): flexion ``amplitude/2 (1 - cos)`` from 0 to
+        ``amplitude_deg`` about ``axis``, one cycle per ``period_s``.
+        """
+        t = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        amp = np.deg2rad(self.amplitude_deg)
+        phase = 2.0 * np.pi * t / self.period_s
+        if self.kind == "hinge":
+            return np.outer(0.5 * amp * (1.0 - np.cos(phase)), self.axis)
+        k = np.floor(t / self.period_s).astype(int) % 12  # 8 arcs then 4 circumductions
+        bump = np.sin(0.5 * phase) ** 2  # 0 -> 1 -> 0 over one period
+        star = np.deg2rad(45.0) * k
+        q = np.zeros((t.size, 3))
+        arc = k < 8
+        q[arc, 0] = amp * bump[arc] * np.cos(star[arc])
+        q[arc, 1] = amp * bump[arc] * np.sin(star[arc])
+        q[~arc, 0] = amp * np.cos(phase[~arc])
+        q[~arc, 1] = amp * np.sin(phase[~arc])
+        q[:, 2] = 0.3 * amp * np.sin(0.5 * phase + 0.7)  # some internal-external rotation
+        return q
+
+    def poses_at(self, times: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """True world poses ``(R_parent, d_parent, R_child, d_child)`` at ``times`` (s), shapes (N, 3, 3), (N, 3)."""
+        t = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        wave = np.sin(2.0 * np.pi * t[:, None] / (3.7 * self.period_s) * np.array([1.0, 1.3, 0.7, 0.9, 1.1, 0.8])
+                      + self.seed_phase)
+        R_p = Rotation.from_rotvec(np.deg2rad(5.0) * wave[:, :3]).as_matrix()
+        d_p = 40.0 * wave[:, 3:6] + np.array([100.0, 200.0, 900.0])
+        R_c = R_p @ Rotation.from_rotvec(self.joint_rotvec(t)).as_matrix()
+        joint = np.einsum("nij,j->ni", R_p, self.centre_parent) + d_p
+        d_c = joint - np.einsum("nij,j->ni", R_c, self.centre_child)
+        return R_p, d_p, R_c, d_c
+
+    def markers_at(self, times: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Noise-free world markers ``(parent (N, Pa, 3), child (N, Pc, 3))`` at ``times`` (s)."""
+        R_p, d_p, R_c, d_c = self.poses_at(times)
+        yp = np.einsum("nij,pj->npi", R_p, self.template_parent) + d_p[:, None, :]
+        yc = np.einsum("nij,pj->npi", R_c, self.template_child) + d_c[:, None, :]
+        return yp, yc
+
+
+def _cluster(rng: np.random.Generator, n: int, radius: tuple[float, float]) -> FloatArray:
+    """``n`` markers around a ring of ``radius`` mm (range), +-15 mm out of its plane, randomly oriented, centred."""
+    ang = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False) + rng.uniform(-0.3, 0.3, n)
+    r = rng.uniform(radius[0], radius[1], n)
+    x = np.stack([r * np.cos(ang), r * np.sin(ang), rng.normal(0.0, 15.0, n)], axis=1)
+    x = x @ Rotation.random(random_state=rng).as_matrix().T
+    out: FloatArray = x - x.mean(axis=0)
+    return out
+
+
+def hip_motion(
+    rng: np.random.Generator, *, n_markers: tuple[int, int] = (4, 4), amplitude_deg: float = 25.0,
+    period_s: float = 2.5,
+) -> JointMotion:
+    """A hip: pelvis cluster (ASIS/PSIS-like, radius 100-140 mm), thigh cluster (radius 80-120 mm) 200-300 mm below the centre.
+
+    The hip centre is ~80 mm below and ~90 mm lateral of the pelvis marker
+    centroid; the thigh cluster's centroid is 200-300 mm distal of it (the
+    lever arm that turns a thigh-cluster rotation into a centre shift).
+    Star arcs and circumductions of ``amplitude_deg`` (20-30 deg in
+    functional-calibration protocols, e.g. Camomilla et al. 2006).
+    """
+    xp = _cluster(rng, n_markers[0], (100.0, 140.0))
+    xc = _cluster(rng, n_markers[1], (80.0, 120.0))
+    c_p = np.array([90.0, 0.0, -80.0]) + rng.normal(0.0, 10.0, 3)
+    c_c = np.array([0.0, 60.0, rng.uniform(200.0, 300.0)])
+    return JointMotion(xp, xc, c_p, c_c, np.array([0.0, 1.0, 0.0]), "ball", float(amplitude_deg), float(period_s),
+                       rng.uniform(0.0, 2.0 * np.pi, 6))
+
+
+def knee_motion(
+    rng: np.random.Generator, *, n_markers: tuple[int, int] = (4, 4), amplitude_deg: float = 90.0,
+    period_s: float = 2.5,
+) -> JointMotion:
+    """A knee: thigh cluster 150-250 mm above the axis, shank cluster 100-200 mm below, flexion 0-``amplitude_deg``."""
+    xp = _cluster(rng, n_markers[0], (50.0, 80.0))
+    xc = _cluster(rng, n_markers[1], (50.0, 80.0))
+    c_p = np.array([0.0, 50.0, -rng.uniform(150.0, 250.0)])
+    c_c = np.array([0.0, 50.0, rng.uniform(100.0, 200.0)])
+    axis = np.array([1.0, 0.0, 0.0]) + rng.normal(0.0, 0.05, 3)
+    return JointMotion(xp, xc, c_p, c_c, axis / np.linalg.norm(axis), "hinge", float(amplitude_deg),
+                       float(period_s), rng.uniform(0.0, 2.0 * np.pi, 6))

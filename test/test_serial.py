@@ -430,7 +430,11 @@ def test_real_hip_reports_an_honest_spread() -> None:
         off.update(pelvis[k], thigh[k])
     sol, raw = on.estimate(), off.estimate()
     assert isinstance(sol, PoseSumsCentre) and isinstance(raw, PoseSumsCentre)
-    batch = fit_centre_two_segments(pelvis, thigh)
+    # Like with like: the batch fit's residual inflation (attachment="rigid"). The skin default adds a
+    # soft-tissue prior that the online estimator does not have yet: larger still, and checked below.
+    batch = fit_centre_two_segments(pelvis, thigh, attachment="rigid")
+    skin = fit_centre_two_segments(pelvis, thigh)
+    assert np.trace(skin.cov_parent) > np.trace(batch.cov_parent)
     sd_on = np.sqrt(np.diag(sol.cov_parent))
     sd_off = np.sqrt(np.diag(raw.cov_parent))
     sd_batch = np.sqrt(np.diag(batch.cov_parent))
