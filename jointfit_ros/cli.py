@@ -51,7 +51,7 @@ from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
 
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, run_fit
-from .params import node_config, params_from_file
+from .params import calibration_path, node_config, params_from_file
 from .report import fit_summary, html_page, joint_reports
 
 __all__ = ["main", "fit_main"]
@@ -193,7 +193,7 @@ def fit_main(argv: Sequence[str]) -> int:
         if opts.write_calibration:
             for j in cfg.joints:
                 if j.name in calibrations and j.calibration_file:
-                    installed.append(str(save_calibration(Path(j.calibration_file).expanduser(), calibrations[j.name])))
+                    installed.append(str(save_calibration(calibration_path(j.calibration_file), calibrations[j.name])))
     except (JointfitError, OSError, ValueError) as exc:
         print(f"{PROG} fit: error: {exc}", file=sys.stderr)
         return 1

@@ -38,6 +38,7 @@ __all__ = [
     "parameters_markdown",
     "params_from_file",
     "check_known",
+    "calibration_path",
 ]
 
 
@@ -642,6 +643,20 @@ def _joint_config(
     )
 
 
+def calibration_path(text: str) -> Path:
+    """A ``calibration_file`` value as a path: ``~`` and environment variables (``$HOME/...``) expanded.
+
+    Raises
+    ------
+    ConfigError
+        A variable that is not set (the path would be taken literally, relative to the working directory).
+    """
+    expanded = os.path.expanduser(os.path.expandvars(text))
+    if "$" in expanded:
+        raise ConfigError(f"calibration_file: {text!r} names an environment variable that is not set")
+    return Path(expanded)
+
+
 def check_known(names: Iterable[str], joints: Sequence[str]) -> None:
     """Refuse parameter names that no declaration knows (a misspelt key would be ignored in silence).
 
@@ -707,7 +722,7 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
     files: dict[str, str] = {}
     for c in configs:
         if c.calibration_file:
-            key = os.path.normpath(os.path.expanduser(c.calibration_file))
+            key = os.path.normpath(calibration_path(c.calibration_file))
             if key in files:
                 raise ConfigError(
                     f"{c.name}.calibration_file: {c.calibration_file!r} is also {files[key]}'s; each joint needs a "

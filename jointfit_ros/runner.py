@@ -37,7 +37,7 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .activity import InputActivity
-from .params import JointConfig, NodeConfig
+from .params import JointConfig, NodeConfig, calibration_path
 from .sync import StampMatcher
 
 __all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE"]
@@ -251,8 +251,8 @@ class JointRunner:
 
     @property
     def calibration_path(self) -> Path | None:
-        """The calibration file with ``~`` expanded (None when not configured)."""
-        return Path(self.cfg.calibration_file).expanduser() if self.cfg.calibration_file else None
+        """The calibration file with ``~`` and environment variables expanded (None when not configured)."""
+        return calibration_path(self.cfg.calibration_file) if self.cfg.calibration_file else None
 
     def _load(self) -> None:
         """Load the configured calibration file, when it exists and is valid for this joint.

@@ -183,3 +183,15 @@ def test_a_file_without_names_is_checked_against_the_live_markers(tmp_path: Path
         assert "discarded (kept as it is)" in runner.last_error and "differ from its templates" in runner.last_error
         assert runner.loaded_from == ""
     assert path.read_bytes() == before
+
+
+def test_environment_variables_in_the_path_are_expanded(tmp_path: Path, saved: dict[str, Any],
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("JOINTFIT_TEST_DIR", str(tmp_path / "lab"))
+    save_calibration(tmp_path / "lab" / "hip.yaml", saved)
+    runner = _runner(Path("$JOINTFIT_TEST_DIR/hip.yaml"))
+    assert runner.calibration_path == tmp_path / "lab" / "hip.yaml" and runner.estimator.frozen
+    assert runner.loaded_from == str(tmp_path / "lab" / "hip.yaml")
+    monkeypatch.delenv("JOINTFIT_TEST_DIR")
+    with pytest.raises(ConfigError, match="environment variable that is not set"):
+        node_config(_values(Path("$JOINTFIT_TEST_DIR/hip.yaml")))
