@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from .synthetic import TwoSegmentMotion
+from .synthetic import TwoSegmentMotion, markers_from_poses
 
 __all__ = ["SkinArtefact", "skin_artefact", "skin_markers_at", "STA_MODES"]
 
@@ -268,10 +268,7 @@ class JointMotion:
 
     def markers_at(self, times: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Noise-free world markers ``(parent (N, Pa, 3), child (N, Pc, 3))`` at ``times`` (s)."""
-        R_p, d_p, R_c, d_c = self.poses_at(times)
-        yp = np.einsum("nij,pj->npi", R_p, self.template_parent) + d_p[:, None, :]
-        yc = np.einsum("nij,pj->npi", R_c, self.template_child) + d_c[:, None, :]
-        return yp, yc
+        return markers_from_poses(self.poses_at(times), self.template_parent, self.template_child)
 
 
 def _cluster(rng: np.random.Generator, n: int, radius: tuple[float, float]) -> FloatArray:

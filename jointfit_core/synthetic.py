@@ -21,6 +21,7 @@ __all__ = [
     "TwoSegmentMotion",
     "two_segment_motion",
     "random_cluster",
+    "markers_from_poses",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -191,16 +192,23 @@ class TwoSegmentMotion:
 
     def markers_at(self, times: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Noise-free world markers ``(parent (N, Pa, 3), child (N, Pc, 3))`` at ``times`` (s)."""
-        R_p, d_p, R_c, d_c = self.poses_at(times)
-        yp = np.einsum("nij,pj->npi", R_p, self.template_parent) + d_p[:, None, :]
-        yc = np.einsum("nij,pj->npi", R_c, self.template_child) + d_c[:, None, :]
-        return yp, yc
+        return markers_from_poses(self.poses_at(times), self.template_parent, self.template_child)
 
     def centre_world_at(self, times: ArrayLike) -> FloatArray:
         """True joint centre (hinge: the axis point ``centre_parent``) in the world, shape (N, 3), mm."""
         R_p, d_p, _, _ = self.poses_at(times)
         out: FloatArray = np.einsum("nij,j->ni", R_p, self.centre_parent) + d_p
         return out
+
+
+def markers_from_poses(
+    poses: tuple[FloatArray, FloatArray, FloatArray, FloatArray], template_parent: FloatArray, template_child: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """World markers of two segments from their poses ``(R_p (N, 3, 3), d_p (N, 3), R_c, d_c)`` and templates (P, 3)."""
+    R_p, d_p, R_c, d_c = poses
+    yp: FloatArray = np.einsum("nij,pj->npi", R_p, template_parent) + d_p[:, None, :]
+    yc: FloatArray = np.einsum("nij,pj->npi", R_c, template_child) + d_c[:, None, :]
+    return yp, yc
 
 
 def random_cluster(rng: np.random.Generator, n_markers: int) -> FloatArray:
