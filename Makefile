@@ -11,7 +11,7 @@ BENCH_STAMP := $(VENV)/.bench-installed
 ROS_DOMAIN_ID ?= 42
 ROS_ENV := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID=$(ROS_DOMAIN_ID)
 
-.PHONY: venv lint test demo demo-offline bench soak clean
+.PHONY: venv lint test attack demo demo-offline bench soak clean
 
 venv: $(STAMP)
 
@@ -29,6 +29,10 @@ lint: venv
 
 test: venv lint
 	$(ROS_ENV) $(BIN)/python -m pytest
+
+# Long adversarial runs against a live node (e.g. hypothesis over every parameter), not part of make test.
+attack: venv
+	$(ROS_ENV) $(BIN)/python -m pytest -m attack
 
 demo: venv
 	$(ROS_ENV) $(BIN)/python -m jointfit_ros.demo

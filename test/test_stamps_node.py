@@ -163,9 +163,10 @@ def test_bad_stamps_do_not_stop_the_stream_nor_the_node(rig: tuple[_Client, Any,
     def published_after(msgs: list[Any]) -> int:
         return sum(1 for m in msgs if _stamp_s(m) > after)
 
-    # the frozen hip and the estimating knee publish the good frames after the bad ones
-    assert client.spin_until(lambda: published_after(client.hip) > 0.8 * RATE, 5.0), published_after(client.hip)
-    assert client.spin_until(lambda: published_after(client.knee) > 0.8 * RATE, 5.0), published_after(client.knee)
+    # the frozen hip and the estimating knee publish the good frames after the bad ones (the failure this
+    # guards against published 1 frame in 20 s; best-effort frames seen here can be lost on a loaded machine)
+    assert client.spin_until(lambda: published_after(client.hip) > 0.5 * RATE, 5.0), published_after(client.hip)
+    assert client.spin_until(lambda: published_after(client.knee) > 0.5 * RATE, 5.0), published_after(client.knee)
     assert all(_stamp_s(m) < 2**31 - 1 for m in client.hip + client.knee)  # no output carries the bad stamp
     assert client.spin_until(
         lambda: _count(client, "input", "malformed messages") == 2
