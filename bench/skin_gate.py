@@ -133,11 +133,15 @@ def fit(thigh: FloatArray, shank: FloatArray, t: FloatArray, gate: float) -> Onl
 
 
 def gated_mask(est: OnlineJoint, n: int) -> NDArray[np.bool_]:
-    """(N, 2): the segment failed the gate in that frame (frames numbered from 1 as they arrived)."""
+    """(N, 2): the segment failed the gate in that frame (frames numbered from 1 as they arrived).
+
+    A frame the joint test rejected (side 2 in the log) counts for both segments: both are lost to
+    the joint in that frame, whichever was corrupted.
+    """
     out = np.zeros((n, 2), dtype=bool)
     assert est.gate_log is not None
     for number, side, _ in est.gate_log:
-        out[number - 1, side] = True
+        out[number - 1, slice(None) if side == 2 else side] = True
     return out
 
 

@@ -28,6 +28,7 @@ from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
 from .gate import GATE_JUMP_LOW, BlockJumps, ShapeTrack, consistent_frames, gate_fails, marker_code
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
+from .joint_gate import JointTrack
 from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
 from .quaternion_fit import HORN_A, HORN_B, rotations_from_correlations
 from .segments import (
@@ -266,6 +267,15 @@ def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatAr
     yy = (Y * Y).sum(axis=(1, 2)) - ps.n * (ybar * ybar).sum(axis=1)  # Y is zero where not visible
     ss = np.maximum(yy + ps.xx - 2.0 * lam[:, 3], 0.0)
     return R, d, ss
+
+
+def _relative_poses(R: FloatArray, d: FloatArray) -> FloatArray:
+    """``[Q | t] = R_p^T [R_c | d_c - d_p]`` (K, 3, 4) of poses ``R`` (K, 2, 3, 3), ``d`` (K, 2, 3)."""
+    Rp_t = np.swapaxes(R[:, 0], 1, 2)
+    z = np.empty((R.shape[0], 3, 4))
+    np.matmul(Rp_t, R[:, 1], out=z[:, :, :3])
+    z[:, :, 3] = np.einsum("kij,kj->ki", Rp_t, d[:, 1] - d[:, 0])
+    return z
 
 
 def _poses_many(
@@ -945,6 +955,9 @@ class OnlineJoint:
         self._gate_key: tuple[float, bool, tuple[float, float], int] | None = None
         self._gate_cache: FloatArray | None = None
         self._jump_limit = np.full(2, np.inf)
+        # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
+        self._joint = JointTrack(self.gate)
+        self.joint_gated_frames = 0
         self._pairs: dict[bytes, _PairSet] = {}
         self._table: tuple[FloatArray, ...] = ()
         self._Y = np.zeros((0, 0, 3))
@@ -1350,6 +1363,10 @@ class OnlineJoint:
                 close = np.diff(numbers[rows[pos]]) <= GATE_TURN_GAP_FRAMES
                 candidate[pos[1:]] |= close & (_cos_turn(Rk[1:], Rk[:-1]) < _COS_MAX_TURN + _COS_MARGIN)
                 candidate[pos[0]] |= self._turns_segment(k, Rk[0], int(numbers[rows[pos[0]]]))
+            if self._joint.armed:  # the joint test, each frame against the one before it (a superset)
+                both = np.flatnonzero(posed_ok.all(axis=1))
+                score = self._joint.scores_of(_relative_poses(R[both], d[both]), numbers[rows[both]])
+                candidate[both[score > (1.0 - _SS_MARGIN) * self._joint.limit]] = True
             sequential[rows[candidate]] = True
         queue = np.flatnonzero(sequential).tolist()  # a heap: frames to take one by one, oldest first
         queued = set(queue)
@@ -1364,6 +1381,9 @@ class OnlineJoint:
                 if run[0] > start:
                     before_in[0] = bool(entered[run[0] - 1])
                 pos = np.searchsorted(rows, run)  # the run's rows among the posed ones
+                if self._joint.residual is not None:
+                    z = _relative_poses(R[pos], d[pos])
+                    self._joint.passed(z, numbers[run], self._joint.scores_of(z, numbers[run]), False)
                 self._push_block(Y[run], slots[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
             if start < f:
                 self._prev_in = bool(entered[f - 1])
@@ -1392,6 +1412,15 @@ class OnlineJoint:
                 if shapes and i > 0 and seg[i - 1] == after - 1:  # frame f posed segment k
                     for j in shapes[k].recheck(i - 1, _SS_MARGIN).tolist():
                         g = int(rows[seg[j]])
+                        if g not in queued:
+                            heapq.heappush(queue, g)
+                            queued.add(g)
+            if self._joint.armed:  # the next two frames with both segments posed, against the joint's references now
+                nxt = f + 1 + np.flatnonzero(entered[f + 1 :])[:2]
+                if nxt.size:
+                    p = np.searchsorted(rows, nxt)
+                    score = self._joint.scores_of(_relative_poses(R[p], d[p]), numbers[nxt])
+                    for g in nxt[score > (1.0 - _SS_MARGIN) * self._joint.limit].tolist():
                         if g not in queued:
                             heapq.heappush(queue, g)
                             queued.add(g)
@@ -1878,6 +1907,10 @@ class OnlineJoint:
                     seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code)
             if not refit:
                 self._seen(ps, local, frame_no)
+        if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
+            if self._joint_fails(R, d, frame_no, stamp):
+                self._prev_in = False
+                return None
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution
             z = self._z_view
@@ -1909,6 +1942,20 @@ class OnlineJoint:
             return None
         child_pose = (R[1], d[1]) if ps.child is not None else None
         return self._world(R[0], d[0], ps.parent, child_pose)
+
+    def _joint_fails(self, R: FloatArray, d: FloatArray, frame_no: int, stamp: float | None) -> bool:
+        """The joint test (:mod:`jointfit_core.joint_gate`) of a frame posed ``R`` (2, 3, 3), ``d`` (2, 3); counts a failure."""
+        z = _relative_poses(R[None], d[None])
+        numbers = np.array([frame_no], dtype=np.int64)
+        score = self._joint.scores_of(z, numbers)
+        if self._joint.fails(float(score[0])):
+            self.joint_gated_frames += 1
+            self._drop("joint_gated")
+            if self.gate_log is not None:
+                self.gate_log.append((frame_no, 2, np.nan if stamp is None else stamp))
+            return True
+        self._joint.passed(z, numbers, score, self._frozen)
+        return False
 
     # ------------------------------------------------------------------ estimates
 
@@ -2028,6 +2075,7 @@ class OnlineJoint:
         self._serial = result.serial
         self._solved_version = result.version
         self._world_cache = {}
+        self._joint.arm(self._solution, self.length_scale)
 
     def _world(
         self, Rp: FloatArray, dp: FloatArray, vp: _VisibleSet, child_pose: tuple[FloatArray, FloatArray] | None
@@ -2186,6 +2234,7 @@ class OnlineJoint:
             serial = data.get("serial_inflation")  # absent from calibrations saved before it existed
             est._serial = None if serial is None else _serial_from_dict(serial)
             est._world_cache = {}
+            est._joint.arm(est._solution, est.length_scale)
         except InputError:
             raise
         except (KeyError, TypeError, ValueError) as exc:

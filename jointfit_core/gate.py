@@ -435,7 +435,7 @@ class BlockJumps:
 GATE_WARN_SHARE = 0.10
 
 
-def gated_verdict(gated: tuple[int, int], frames: int, names: tuple[str, str]) -> str:
+def gated_verdict(gated: tuple[int, int], frames: int, names: tuple[str, str], joint_gated: int = 0) -> str:
     """Empty, or what the outlier gate did to the segments above :data:`GATE_WARN_SHARE` of the frames.
 
     Parameters
@@ -448,6 +448,8 @@ def gated_verdict(gated: tuple[int, int], frames: int, names: tuple[str, str]) -
         <jointfit_core.estimator.OnlineJoint.n_frames_seen>`).
     names : (str, str)
         How to name the parent and the child (their role and markers).
+    joint_gated : int
+        Frames the joint-consistency test rejected (:mod:`jointfit_core.joint_gate`).
     """
     if frames <= 0:
         return ""
@@ -456,6 +458,11 @@ def gated_verdict(gated: tuple[int, int], frames: int, names: tuple[str, str]) -
         for n, name in zip(gated, names, strict=True)
         if n > GATE_WARN_SHARE * frames
     ]
+    if joint_gated > GATE_WARN_SHARE * frames:
+        parts.append(
+            f"the joint test rejected {100.0 * joint_gated / frames:.0f} % of the frames ({joint_gated} of {frames}: "
+            "both segments posed, the joint broken suddenly)"
+        )
     if not parts:
         return ""
     return (

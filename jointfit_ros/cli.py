@@ -138,6 +138,8 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
         verdict += f"; WARNING: {joint['gate_warning']}"
     gated = joint["gated"]
     share = f"gated {gated['parent']['percent']:.2g} % parent, {gated['child']['percent']:.2g} % child"
+    if gated.get("joint", {}).get("frames"):
+        share += f", {gated['joint']['percent']:.2g} % by the joint test"
     return f"{name}: {est}, rms {joint['rms_residual']:.3g} {unit}, {joint['frames_in_window']} frames, {share}{verdict}"
 
 

@@ -218,18 +218,20 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
 
 
 def gated_share(r: JointRunner) -> dict[str, dict[str, float]]:
-    """Per segment (``parent``, ``child``): the frames the outlier gate rejected, their number and percent of the frames taken."""
+    """Per segment (``parent``, ``child``) and the joint test (``joint``): the frames rejected, their number and percent of the frames taken."""
     est = r.estimator
     seen = est.n_frames_seen
+    counts = (*est.gated_frames, est.joint_gated_frames)
     return {
         side: {"frames": n, "percent": round(100.0 * n / seen, 2) if seen else 0.0}
-        for side, n in zip(("parent", "child"), est.gated_frames, strict=True)
+        for side, n in zip(("parent", "child", "joint"), counts, strict=True)
     }
 
 
 def gate_warning(r: JointRunner) -> str:
     """:func:`~jointfit_core.gate.gated_verdict` of a joint (empty when no segment lost more than 10 % of its frames)."""
-    return gated_verdict(r.estimator.gated_frames, r.estimator.n_frames_seen, r.cfg.segment_names())
+    est = r.estimator
+    return gated_verdict(est.gated_frames, est.n_frames_seen, r.cfg.segment_names(), est.joint_gated_frames)
 
 
 def fit_summary(
@@ -415,14 +417,14 @@ def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | Pose
             handle.set_markersize(6)
 
 
-def gated_times(run: FitRun, trace: JointTrace) -> tuple[FloatArray, FloatArray]:
-    """Times (s from the first frame) of the frames in which the parent and the child failed the outlier gate."""
+def gated_times(run: FitRun, trace: JointTrace) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Times (s from the first frame) of the frames in which the parent, the child and the joint failed the gate."""
     log = trace.runner.estimator.gate_log or []
     t0 = float(run.stamps[0]) if run.stamps.size else 0.0
     out = []
-    for side in (0, 1):
+    for side in (0, 1, 2):
         out.append(np.array([stamp for _, k, stamp in log if k == side], dtype=np.float64) - t0)
-    return out[0], out[1]
+    return out[0], out[1], out[2]
 
 
 def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, unit: str, run_: FitRun) -> None:
@@ -433,7 +435,9 @@ def _draw_marker_residuals(ax: Any, geo: SegmentGeometry, trace: JointTrace, uni
             line = {"linestyle": style, "lw": 0.8, "label": name}
             run = _plot_series(ax, geo.t, res[:, k], line, line, {"linestyle": "none", "marker": ".", "ms": 2})
     share = gated_share(trace.runner)
-    for side, times, y, colour in zip(("parent", "child"), gated_times(run_, trace), (0.02, 0.06), ("C3", "C1"), strict=True):
+    for side, times, y, colour in zip(
+        ("parent", "child", "joint"), gated_times(run_, trace), (0.02, 0.06, 0.10), ("C3", "C1", "C4"), strict=True
+    ):
         if times.size:  # rug of the gated frames along the bottom of the panel
             ax.plot(times, np.full(times.size, y), "|", color=colour, ms=6, transform=ax.get_xaxis_transform(),
                     label=f"{side} gated ({share[side]['percent']:.1f} %)")
@@ -530,7 +534,8 @@ def _headline(trace: JointTrace, unit: str) -> str:
     share = gated_share(r)
     frames = (
         f"{sol.n_frames} frames, rms constraint residual {sol.rms:.3g} {unit}, outlier gate: parent "
-        f"{share['parent']['percent']:.1f} %, child {share['child']['percent']:.1f} % of the frames"
+        f"{share['parent']['percent']:.1f} %, child {share['child']['percent']:.1f} %, joint test "
+        f"{share['joint']['percent']:.1f} % of the frames"
     )
     warning = gate_warning(r)
     if warning:

@@ -765,7 +765,7 @@ class JointRunner:
             values["axis points"] = self.axis_words()
         for reason, count in sorted(est.dropped.items()):
             values[f"dropped: {reason}"] = count
-        for side, n in zip(("parent", "child"), est.gated_frames, strict=True):
+        for side, n in zip(("parent", "child", "joint"), (*est.gated_frames, est.joint_gated_frames), strict=True):
             values[f"{side} gated (%)"] = round(100.0 * n / est.n_frames_seen, 2) if est.n_frames_seen else 0.0
         if self.loaded_from:
             values["calibration loaded from"] = self.loaded_from
@@ -801,7 +801,7 @@ class JointRunner:
             values["point_parent"] = np.round(sol.point_parent, 6).tolist()
             values["direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
             values["point sd (max)"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
-        gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names())
+        gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names(), est.joint_gated_frames)
         if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
             return Status(WARN, gated, values)
         if not sol.identifiable:

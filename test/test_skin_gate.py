@@ -92,7 +92,7 @@ def _gated(est: OnlineJoint, n: int) -> NDArray[np.bool_]:
     out = np.zeros((n, 2), dtype=bool)
     assert est.gate_log is not None
     for number, side, _ in est.gate_log:
-        out[number - 1, side] = True
+        out[number - 1, slice(None) if side == 2 else side] = True  # 2: the joint test, both segments lost
     return out
 
 
@@ -197,7 +197,8 @@ def test_fit_reports_the_gated_share_and_exits_0_on_clean_skin_data(tmp_path: Pa
     assert code == 0, out
     assert "gated 0 % parent, 0 % child" in out, out
     joint = json.loads((tmp_path / "clean" / "summary.json").read_text())["joints"][0]
-    assert joint["gated"] == {"parent": {"frames": 0, "percent": 0.0}, "child": {"frames": 0, "percent": 0.0}}
+    none = {"frames": 0, "percent": 0.0}
+    assert joint["gated"] == {"parent": none, "child": none, "joint": none}
     assert joint["status"] == "ok" and joint["gate_warning"] == ""
 
 

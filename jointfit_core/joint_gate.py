@@ -1,0 +1,217 @@
+"""The joint-consistency test: frames whose two segments broke the joint suddenly.
+
+The outlier gate of :mod:`jointfit_core.gate` looks at one segment at a time,
+at the shape of its markers. A corruption that moves a segment's markers
+*rigidly* leaves its shape unchanged and passes it: a ghost on a 3-marker
+cluster that moves one marker about the line through the other two (the
+cluster turns about that line; a 3-marker cluster has no other shape than its
+three distances), a rigid-body pose that glitches, a cluster that slips as a
+whole. Each such frame still breaks the joint: a ball joint's centre, carried
+by the two segments' poses, no longer coincides; a hinge's axis, carried by
+both, no longer lines up. This test looks there, once the joint has an
+identifiable estimate.
+
+For a frame with both segments posed, the *joint residual* ``e`` in the parent
+template frame is, with ``[Q | t]`` the child's pose relative to the parent's
+(:func:`joint_residuals`):
+
+* ball: ``e = Q c_c + t - c_p`` (3,): the child's centre carried into the
+  parent frame minus the parent's;
+* hinge: ``e = [L (Q a_c - a_p), P (Q p_c + t - p_p)]`` (6,) with ``P`` the
+  projection across the axis ``a_p`` and ``L`` the templates' length scale
+  (a turn of the axis in length units at the clusters).
+
+Skin artefact and estimation error make ``e`` drift with the joint's motion,
+smoothly; marker noise moves it by about the lever arm times the clusters'
+rotation noise in every frame; a corruption changes it suddenly, by about the
+lever arm times the corruption's turn, or its shift. The test therefore
+scores the change of ``e`` from the joint's last passed frame,
+``score = |e_k - e_ref| / sqrt(g)`` (input units; ``g`` frames apart, as the
+segment gate lets a change grow over a gap; against the frame before the last
+passed one, ``g - 1``: the frame skipped over does not widen the allowance). It is not divided by the turn
+between the two frames: at mocap rates a ghost turns a cluster by far more
+than the limb turns in one frame, and would be allowed what such a turn
+allows. The joint's *normal score* is a robust high level (median plus
+:data:`~jointfit_core.gate.GATE_JUMP_MADS` robust standard deviations) of
+the scores of its last :data:`~jointfit_core.gate.GATE_HISTORY_FRAMES`
+passed frames, fixed when an estimate is installed (and, while frozen, when
+it has :data:`JOINT_GATE_MIN_SCORES` scores). A frame fails when its score
+exceeds ``gate`` times the normal score: it enters no statistics and gives
+no per-frame output (``joint_gated`` in the counters). Without a recent
+reference (none yet, or more than :data:`~jointfit_core.gate.GATE_JUMP_GAP_CAP`
+frames ago) the frame passes and becomes the reference; after
+:data:`JOINT_GATE_RELOCK_FRAMES` failures in a row the new state is taken
+(a new subject, a calibration from another session) and the test starts
+afresh.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .gate import GATE_HISTORY_FRAMES, GATE_JUMP_GAP_CAP, GATE_JUMP_MADS
+from .hinge_from_sums import PoseSumsAxis
+from .segments import PoseSumsCentre
+
+__all__ = [
+    "JOINT_GATE_MIN_SCORES",
+    "JOINT_GATE_RELOCK_FRAMES",
+    "JointResidual",
+    "JointTrack",
+    "joint_residuals",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Joint test: passed frames' scores needed before it is armed.
+JOINT_GATE_MIN_SCORES = 20
+#: Joint test: failures in a row after which the new state is taken as the reference.
+JOINT_GATE_RELOCK_FRAMES = 25
+
+
+@dataclass(frozen=True)
+class JointResidual:
+    """What :func:`joint_residuals` needs of an estimate (parent and child template frames, input units).
+
+    ``kind`` "ball": ``a = c_p``, ``b = c_c``; "hinge": ``a = p_p``, ``b = p_c``, and the
+    directions ``u = a_p``, ``v = a_c`` with the length scale ``length``.
+    """
+
+    kind: str
+    a: FloatArray
+    b: FloatArray
+    u: FloatArray
+    v: FloatArray
+    length: float
+
+    @classmethod
+    def of(cls, solution: PoseSumsCentre | PoseSumsAxis, length: float) -> JointResidual:
+        """The residual of ``solution`` with templates of length scale ``length`` (input units)."""
+        if isinstance(solution, PoseSumsAxis):
+            u = np.asarray(solution.direction_parent, dtype=np.float64)
+            v = np.asarray(solution.direction_child, dtype=np.float64)
+            return cls("hinge", np.asarray(solution.point_parent, float), np.asarray(solution.point_child, float),
+                       u, v, float(length))
+        zero = np.zeros(3)
+        return cls("ball", np.asarray(solution.centre_parent, float), np.asarray(solution.centre_child, float),
+                   zero, zero, float(length))
+
+
+def joint_residuals(z: FloatArray, res: JointResidual) -> FloatArray:
+    """Joint residuals of relative poses ``z`` (K, 3, 4) = ``[Q | t]``: (K, 3) ball, (K, 6) hinge (input units).
+
+    See the module notes for the definitions.
+    """
+    Q, t = z[:, :, :3], z[:, :, 3]
+    carried = Q @ res.b + t - res.a
+    if res.kind == "ball":
+        out: FloatArray = carried
+        return out
+    u = res.u
+    across = carried - np.outer(carried @ u, u)
+    turn = res.length * (Q @ res.v - u)
+    return np.concatenate([turn, across], axis=1)
+
+
+class JointTrack:
+    """The joint test's state: the two last passed frames, the recent scores and the armed limit.
+
+    A frame is scored against the last passed frame and the one before it, and keeps the lower
+    score: a corruption the test missed (it passed, and became the reference) then does not
+    lock the clean frames after it out.
+
+    Parameters
+    ----------
+    gate : float
+        A frame fails when its score exceeds ``gate`` times the normal score (0: off).
+    """
+
+    def __init__(self, gate: float) -> None:
+        self.gate = float(gate)
+        self.scores: deque[float] = deque(maxlen=GATE_HISTORY_FRAMES)
+        self.residual: JointResidual | None = None
+        self.limit = np.inf  # score limit (input units); inf: not armed
+        self.z_ref = np.zeros((2, 3, 4))  # the last passed frame's relative pose, and the one's before it
+        self.ref_frame = np.zeros(2, dtype=np.int64)  # their frame numbers; 0: none
+        self.fails_in_row = 0
+
+    @property
+    def armed(self) -> bool:
+        """Whether the test applies (an identifiable estimate and enough scores)."""
+        return bool(np.isfinite(self.limit))
+
+    def arm(self, solution: PoseSumsCentre | PoseSumsAxis | None, length: float) -> None:
+        """Fix the residual of ``solution`` and the limit from the scores so far (unarmed without both)."""
+        if solution is None or not solution.identifiable or not np.isfinite(length) or length <= 0.0:
+            self.residual, self.limit = None, np.inf
+            return
+        self.residual = JointResidual.of(solution, length)
+        self.limit = self._limit()
+
+    def _limit(self) -> float:
+        """``gate`` times the normal score of the scores kept (inf with too few, or the gate off)."""
+        if len(self.scores) < JOINT_GATE_MIN_SCORES or self.gate <= 0.0:
+            return float(np.inf)
+        s = np.fromiter(self.scores, dtype=np.float64)
+        med = float(np.median(s))
+        spread = 1.4826 * float(np.median(np.abs(s - med)))
+        return self.gate * (med + GATE_JUMP_MADS * spread)
+
+    def scores_of(self, z: FloatArray, numbers: NDArray[np.int64]) -> FloatArray:
+        """Scores of frames ``z`` (K, 3, 4) numbered ``numbers`` (K,), as if each frame before passed.
+
+        Each row against the two frames before it (rows 0 and 1 against the references);
+        NaN where neither is within :data:`~jointfit_core.gate.GATE_JUMP_GAP_CAP` frames, or
+        there is no residual.
+        """
+        k = z.shape[0]
+        if self.residual is None or k == 0:
+            return np.full(k, np.nan)
+        zz = np.concatenate([self.z_ref[::-1], z])  # (K + 2, 3, 4): the older reference first
+        nn = np.concatenate([self.ref_frame[::-1], numbers])
+        e = joint_residuals(zz, self.residual)
+        best = np.full(k, np.inf)
+        for back in (1, 2):
+            gap = nn[2:] - nn[2 - back : nn.size - back]
+            ok = (gap <= GATE_JUMP_GAP_CAP) & (nn[2 - back : nn.size - back] > 0)
+            # the allowance grows with the frames since the reference, not counting one skipped over
+            jump = np.linalg.norm(e[2:] - e[2 - back : nn.size - back], axis=1) / np.sqrt(np.maximum(gap - back + 1, 1))
+            best = np.where(ok, np.minimum(best, jump), best)
+        out: FloatArray = np.where(np.isfinite(best), best, np.nan)
+        return out
+
+    def fails(self, score: float) -> bool:
+        """Whether a frame of ``score`` (:meth:`scores_of`) fails (and counts the failures in a row)."""
+        if not (self.armed and score > self.limit):  # NaN: no reference, passes
+            return False
+        self.fails_in_row += 1
+        if self.fails_in_row > JOINT_GATE_RELOCK_FRAMES:
+            self.fails_in_row = 0
+            self.scores.clear()
+            self.limit = np.inf  # re-armed by the next estimate (or, frozen, by enough scores)
+            return False
+        return True
+
+    def passed(self, z: FloatArray, numbers: NDArray[np.int64], scores: FloatArray, frozen: bool) -> None:
+        """Frames ``z`` (K, 3, 4) numbered ``numbers`` passed with ``scores`` (:meth:`scores_of`): keep them.
+
+        The last two become the references. While ``frozen`` (no estimates to arm the test at),
+        the test is armed as soon as there are enough scores.
+        """
+        k = z.shape[0]
+        if k == 0:
+            return
+        self.scores.extend(scores[np.isfinite(scores)].tolist())
+        if k == 1:
+            self.z_ref[1], self.ref_frame[1] = self.z_ref[0], self.ref_frame[0]
+            self.z_ref[0], self.ref_frame[0] = z[0], numbers[0]
+        else:
+            self.z_ref[:] = z[::-1][:2]
+            self.ref_frame[:] = numbers[::-1][:2]
+        self.fails_in_row = 0
+        if frozen and not self.armed and self.residual is not None:
+            self.limit = self._limit()
