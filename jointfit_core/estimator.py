@@ -1418,8 +1418,8 @@ class OnlineJoint:
             if self._joint.armed:  # the next two frames with both segments posed, against the joint's references now
                 nxt = f + 1 + np.flatnonzero(entered[f + 1 :])[:2]
                 if nxt.size:
-                    p = np.searchsorted(rows, nxt)
-                    score = self._joint.scores_of(_relative_poses(R[p], d[p]), numbers[nxt])
+                    at_rows = np.searchsorted(rows, nxt)
+                    score = self._joint.scores_of(_relative_poses(R[at_rows], d[at_rows]), numbers[nxt])
                     for g in nxt[score > (1.0 - _SS_MARGIN) * self._joint.limit].tolist():
                         if g not in queued:
                             heapq.heappush(queue, g)
