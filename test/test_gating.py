@@ -26,10 +26,14 @@ PELVIS = ["RASIS", "LASIS", "RPSIS", "LPSIS"]
 
 
 def _stream(est: OnlineJoint, parent: NDArray[np.float64], child: NDArray[np.float64], every: int = 50) -> None:
-    """Frames at 100 Hz, re-estimating every ``every`` frames as the node and jointfit fit do."""
-    for k in range(parent.shape[0]):
-        est.update(parent[k], child[k], k / 100.0)
-        if k % every == every - 1 and est.templates_ready:
+    """Frames at 100 Hz in blocks of ``every``, re-estimating after each, as jointfit fit does.
+
+    (The block path gates exactly as the frame path: test_block_path_*; blocks are ~3x faster here.)
+    """
+    for lo in range(0, parent.shape[0], every):
+        hi = min(lo + every, parent.shape[0])
+        est.update_many(parent[lo:hi], child[lo:hi], np.arange(lo, hi) / 100.0)
+        if hi - lo == every and est.templates_ready:
             est.estimate()
 
 

@@ -157,12 +157,16 @@ def test_ring_sums_equal_direct_sums_through_rebuilds(store: str) -> None:
 
 
 @pytest.mark.slow
-def test_a_million_updates_far_from_the_origin_do_not_drift() -> None:
-    """10^6 updates, the subject moving between lab positions 10^3-10^4 mm away: online == batch to 1e-9."""
+def test_many_updates_far_from_the_origin_do_not_drift() -> None:
+    """2*10^5 updates, the subject moving between lab positions 10^3-10^4 mm away: online == batch to 1e-9.
+
+    The window's sums are rebuilt from its ring once per window (stats.SlidingSums' shadow), so the
+    drift is bounded per window: ~3000 rebuilds here test that as a million updates did (in 5x the time).
+    """
     rng = np.random.default_rng(2026)
     window = 64
     est = OnlineCentre(window=window)
-    n_total, block = 1_000_000, 100_000
+    n_total, block = 200_000, 20_000
     last = np.empty((0, 3, 3))
     for _ in range(n_total // block):
         offset = rng.choice([-1.0, 1.0], 3) * rng.uniform(1e3, 1e4, 3)
