@@ -43,6 +43,7 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.pose import poses_from_markers
 from jointfit_core.segments import PoseSumsCentre
 
+from .anatomy_report import anatomical_summary, joint_rom, rom_summary
 from .bag_blocks import can_fork
 from .offline import FitRun, JointTrace
 from .runner import JointRunner
@@ -55,6 +56,7 @@ __all__ = [
     "SegmentGeometry",
     "geometries",
     "segment_geometry",
+    "length_unit",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -93,16 +95,31 @@ class SegmentGeometry:
         two centres; hinge, of the parent's axis point from the child's axis
         line), input units; NaN where a segment is not posed; None without a
         final estimate.
+    R_parent_child : ndarray, shape (N, 3, 3) or None
+        Per frame, the child's orientation in the parent frame (NaN where a segment is not posed).
+    landmarks_parent : dict of str to (ndarray (3,), float, int)
+        Each ``<joint>.anatomical.*`` marker in the parent frame: the median over the posed frames where it is
+        visible, the rms distance of those frames from it (input units: how rigidly it moves with the parent)
+        and their number.
     """
 
     def __init__(
-        self, t: FloatArray, rp: FloatArray, rc: FloatArray, cip: FloatArray, joint_residual: FloatArray | None = None
+        self,
+        t: FloatArray,
+        rp: FloatArray,
+        rc: FloatArray,
+        cip: FloatArray,
+        joint_residual: FloatArray | None = None,
+        R_parent_child: FloatArray | None = None,
+        landmarks_parent: dict[str, tuple[FloatArray, float, int]] | None = None,
     ) -> None:
         self.t = t
         self.residual_parent = rp
         self.residual_child = rc
         self.child_in_parent = cip
         self.joint_residual = joint_residual
+        self.R_parent_child = R_parent_child
+        self.landmarks_parent = landmarks_parent or {}
 
 
 def _residuals(markers: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -126,7 +143,28 @@ def segment_geometry(run: FitRun, trace: JointTrace) -> SegmentGeometry | None:
         rc, R_c, d_c = _residuals(child, tc)
         cip = (child - d_p[:, None, :]) @ R_p  # R_p^T (y - d_p) of every child marker
         joint = None if trace.final is None else _joint_residual(trace.final, R_p, d_p, R_c, d_c)
-    return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip, joint)
+        R_rel = np.swapaxes(R_p, 1, 2) @ R_c
+        landmarks = _landmarks_parent(run, r.cfg.anatomical, R_p, d_p)
+    return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip, joint, R_rel, landmarks)
+
+
+def _landmarks_parent(
+    run: FitRun, anatomical: tuple[tuple[str, str], ...], R_p: FloatArray, d_p: FloatArray
+) -> dict[str, tuple[FloatArray, float, int]]:
+    """Each landmark marker in the parent frame: median over the frames, rms scatter about it, frames used."""
+    assert run.frames is not None
+    out: dict[str, tuple[FloatArray, float, int]] = {}
+    for _, marker in anatomical:
+        if marker in out:
+            continue
+        x = run.frames[:, run.cfg.marker_index(marker)]
+        local = np.einsum("nji,nj->ni", R_p, x - d_p)
+        local = local[np.isfinite(local).all(axis=1)]
+        if not local.shape[0]:
+            continue
+        med = np.median(local, axis=0)
+        out[marker] = (med, float(np.sqrt(np.mean(np.sum((local - med) ** 2, axis=1)))), int(local.shape[0]))
+    return out
 
 
 def geometries(run: FitRun) -> dict[str, SegmentGeometry | None]:
@@ -214,7 +252,15 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
                 col = col[np.isfinite(col)]
                 rms[name] = float(np.sqrt(np.mean(col**2))) if col.size else None
         out["marker_residual_rms"] = rms
+    out["range_of_motion"] = rom_summary(joint_rom(sol, geo))
+    if r.cfg.anatomical:
+        out["anatomical"] = anatomical_summary(r.cfg, sol, geo, length_unit(run))
     return out
+
+
+def length_unit(run: FitRun) -> str:
+    """The length unit of a run's numbers: the file's (C3D, TRC), else the configured ``units`` (bags)."""
+    return run.units or run.cfg.units
 
 
 def gated_share(r: JointRunner) -> dict[str, dict[str, float]]:
