@@ -51,7 +51,7 @@ def _verdict(joint: Mapping[str, Any]) -> str:
     """The verdict in words, e.g. 'Identified: the estimate can be used.'."""
     status = joint["status"]
     if status == "ok":
-        return "<p class='ok'>Identified: the motion determines this joint; a calibration was written.</p>"
+        return "<p class='ok'>Identified: the motion makes this joint identifiable; a calibration was written.</p>"
     if status == "outlier gate":
         return f"<p class='warn'>Estimated, but {_e(joint.get('gate_warning', ''))}</p>"
     if status == "not identifiable":

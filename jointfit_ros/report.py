@@ -567,8 +567,10 @@ def plain_log_ticks(axis: Any) -> None:
     lo, hi = sorted(axis.get_view_interval())
     if lo > 0 and hi / lo < 10.0:
         axis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 2.5, 5, 10]))
-    else:
+    elif lo > 0 and hi / lo < 300.0:
         axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0), numticks=7))
+    else:
+        axis.set_major_locator(LogLocator(base=10.0, subs=(1.0,), numticks=7))
     axis.set_major_formatter(_plain)
     axis.set_minor_formatter(NullFormatter())
 
