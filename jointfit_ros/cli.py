@@ -50,9 +50,10 @@ from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
 
+from .html_report import html_page
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, run_fit
 from .params import calibration_path, node_config, params_from_file
-from .report import fit_summary, html_page, joint_reports
+from .report import fit_summary, joint_reports, length_unit
 
 __all__ = ["main", "fit_main"]
 
@@ -123,7 +124,7 @@ def _progress_printer(label: str) -> Any:
 
 
 def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
-    unit = run.units or "units"
+    unit = length_unit(run)
     name = f"{joint['name']} ({joint['type']})"
     if joint["status"] == "no estimate":
         return f"{name}: no estimate: {joint['message']}"
@@ -140,7 +141,32 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
     share = f"gated {gated['parent']['percent']:.2g} % parent, {gated['child']['percent']:.2g} % child"
     if gated.get("joint", {}).get("frames"):
         share += f", {gated['joint']['percent']:.2g} % by the joint test"
-    return f"{name}: {est}, rms {joint['rms_residual']:.3g} {unit}, {joint['frames_in_window']} frames, {share}{verdict}"
+    line = f"{name}: {est}, rms {joint['rms_residual']:.3g} {unit}, {joint['frames_in_window']} frames, {share}{verdict}"
+    return line + _anatomy_text(joint)
+
+
+def _anatomy_text(joint: dict[str, Any]) -> str:
+    """The range of motion and the anatomical results of a joint's summary, for its one-line summary."""
+    out = ""
+    rom = joint.get("range_of_motion") or {}
+    if "flexion_range_deg" in rom:
+        out += f"; flexion range {rom['flexion_range_deg']:.0f} deg"
+    elif rom:
+        out += "; rotation ranges " + "/".join(f"{v:.0f}" for v in rom["principal_ranges_deg"]) + " deg"
+    anatomy = joint.get("anatomical") or {}
+    pelvis, epi = anatomy.get("pelvis") or {}, anatomy.get("epicondyles") or {}
+    if "centre" in pelvis:
+        u = pelvis["unit"]
+        out += ("; ISB pelvis frame (" + ", ".join(f"{v:.0f}" for v in pelvis["centre"]) + f") {u} = ("
+                + ", ".join(f"{v:.0f}" for v in pelvis["percent_width"]) + ") % of the ASIS width, "
+                + ", ".join(f"{k.replace('_', ' ')} {r['distance']:.0f} {u} away" for k, r in pelvis["regressions"].items()))
+    if "angle_to_epicondyle_line_deg" in epi:
+        out += (f"; {epi['angle_to_epicondyle_line_deg']:.1f} deg from the epicondyle line, "
+                f"{epi['distance_to_epicondyle_midpoint']:.1f} {epi['unit']} from their midpoint")
+    for part in (anatomy, pelvis, epi):
+        if "error" in part:
+            out += f"; anatomical: {part['error']}"
+    return out
 
 
 def fit_main(argv: Sequence[str]) -> int:

@@ -52,6 +52,7 @@ __all__ = [
     "extra_marker_positions",
     "frame_at",
     "truth_at",
+    "truth_in_template_frame",
     "parse_args",
     "FakeMocapNode",
     "main",
@@ -223,6 +224,44 @@ def truth_at(rigs: dict[str, TwoSegmentMotion], t: float) -> Truth:
     return Truth(centres=centres, axes=axes)
 
 
+def truth_in_template_frame(
+    rig: TwoSegmentMotion, template_parent: FloatArray | None = None, t0: float = 0.0
+) -> tuple[FloatArray, FloatArray | None]:
+    """The true joint in the node's parent template frame (what ``<joint>/centre_local`` and the calibration hold).
+
+    Parameters
+    ----------
+    rig : TwoSegmentMotion
+    template_parent : ndarray, shape (P, 3), optional
+        The node's parent template (``OnlineJoint.templates[0]``, a calibration's ``template_parent``): the
+        truth is carried into its frame by the rigid fit of the rig's template onto it (exact up to the
+        template's own noise). Without it: the frame the node builds when its first template frame is the
+        stream's frame at ``t0`` (origin at the parent markers' centroid, lab axes at ``t0``).
+    t0 : float
+        Motion time (s) of the node's first template frame, when ``template_parent`` is not given.
+
+    Returns
+    -------
+    centre : ndarray, shape (3,)
+        The joint centre (hinge: the axis point ``centre_parent``), mm.
+    axis : ndarray, shape (3,) or None
+        The hinge direction (unit), None for a ball joint.
+    """
+    x = rig.template_parent
+    if template_parent is None:
+        R_p, _, _, _ = rig.poses_at(t0)
+        R = R_p[0]
+        d = -R @ x.mean(axis=0)
+    else:
+        y = np.asarray(template_parent, dtype=np.float64)
+        xc, yc = x - x.mean(axis=0), y - y.mean(axis=0)
+        u, _, vt = np.linalg.svd(yc.T @ xc)
+        R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        d = y.mean(axis=0) - R @ x.mean(axis=0)
+    axis = R @ rig.axis if rig.kind == "hinge" else None
+    return R @ rig.centre_parent + d, axis
+
+
 # --------------------------------------------------------------------------- ROS
 
 
@@ -347,14 +386,18 @@ class FakeMocapNode(Node):
         )
         log.info("marker order (row / label k): " + ", ".join(f"{k}:{n}" for k, n in enumerate(self.names)))
         for name, rig in self.rigs.items():
+            centre, axis = truth_in_template_frame(rig, t0=0.0)
+            what = "centre" if rig.kind == "ball" else "axis point"
             text = (
-                f"truth {name} ({rig.kind}) in the rig's local frames (origin at each cluster's centroid): "
-                f"centre_parent {np.round(rig.centre_parent * s, 6).tolist()} {unit}, "
-                f"centre_child {np.round(rig.centre_child * s, 6).tolist()} {unit}"
+                f"truth {name} ({rig.kind}) in the node's parent template frame (origin at the parent markers' "
+                f"centroid, lab axes at this stream's first frame; compare <joint>/*_local and the calibration "
+                f"when the node's templates start with that frame, else use "
+                f"jointfit_ros.fake_mocap.truth_in_template_frame with the saved template): "
+                f"{what} {np.round(centre * s, 6).tolist()} {unit}"
             )
-            if rig.kind == "hinge":
-                text += f", axis (both frames) {rig.axis.tolist()}"
-            log.info(text)
+            if axis is not None:
+                text += f", axis {np.round(axis, 6).tolist()}"
+            log.info(text + f"; in the world: truth/{name}/centre" + (f", truth/{name}/axis" if axis is not None else ""))
 
     def _tick(self) -> None:
         now_ns = int(self.get_clock().now().nanoseconds)

@@ -39,6 +39,7 @@ __all__ = [
     "params_from_file",
     "check_known",
     "calibration_path",
+    "ANATOMICAL_GROUPS",
 ]
 
 
@@ -269,6 +270,33 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
     ),
 )
 
+_PELVIS_USE = (
+    "Ball joints with all four iliac spines: the centre in the ISB pelvis frame (Wu et al. 2002; origin mid-ASIS, "
+    "x anterior, y superior, z right), as % of the inter-ASIS width, beside the Bell et al. (1990) and "
+    "Harrington et al. (2007) regressions."
+)
+_EPICONDYLE_USE = (
+    "Hinges with both epicondyles: the axis's angle to the epicondyle line and its distance from their midpoint."
+)
+
+_ANATOMICAL_PARAMS: tuple[ParamSpec, ...] = tuple(
+    ParamSpec(
+        f"anatomical.{role}",
+        "string",
+        "",
+        f"Anatomical landmark ({what}): a name from marker_names, moving with the parent segment. {use} "
+        "Used by `jointfit fit` (summary, report); empty: none.",
+    )
+    for role, what, use in (
+        ("rasis", "right anterior superior iliac spine", _PELVIS_USE),
+        ("lasis", "left anterior superior iliac spine", "With the other three spines, see anatomical.rasis."),
+        ("rpsis", "right posterior superior iliac spine", "With the other three spines, see anatomical.rasis."),
+        ("lpsis", "left posterior superior iliac spine", "With the other three spines, see anatomical.rasis."),
+        ("lateral_epicondyle", "lateral femoral epicondyle", _EPICONDYLE_USE),
+        ("medial_epicondyle", "medial femoral epicondyle", "With the lateral one, see anatomical.lateral_epicondyle."),
+    )
+)
+
 JOINT_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("type", "string", "ball", "ball (centre of rotation) or hinge (axis).", choices=("ball", "hinge")),
     ParamSpec("parent_markers", "string_array", [], "Names (from marker_names) of the parent segment's markers, >= 3."),
@@ -401,7 +429,14 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "",
         "frame_id of `<joint>/centre_local` (the parent template frame); empty: `<joint>_parent`.",
     ),
+    *_ANATOMICAL_PARAMS,
 )
+
+#: Landmark roles of ``<joint>.anatomical.*`` by group: all of a group or none.
+ANATOMICAL_GROUPS: dict[str, tuple[str, ...]] = {
+    "pelvis": ("rasis", "lasis", "rpsis", "lpsis"),
+    "epicondyles": ("lateral_epicondyle", "medial_epicondyle"),
+}
 
 #: Parameters that may change while the node runs.
 RUNTIME_PARAMS = frozenset(p.name for p in NODE_PARAMS if p.runtime)
@@ -434,6 +469,13 @@ class JointConfig:
     axis_from_marker: str = ""
     publish_unidentified: bool = False
     freeze_unidentified: bool = False
+    anatomical: tuple[tuple[str, str], ...] = ()
+
+    def landmarks(self, group: str) -> dict[str, str] | None:
+        """The markers of a landmark group of :data:`ANATOMICAL_GROUPS` by role, or None when not configured."""
+        given = dict(self.anatomical)
+        roles = ANATOMICAL_GROUPS[group]
+        return {r: given[r] for r in roles} if all(r in given for r in roles) else None
 
     def segment_names(self) -> tuple[str, str]:
         """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
@@ -618,6 +660,7 @@ def _joint_config(
                 f"{name}.axis_toward_marker: needs marker inputs (this joint reads only pose topics); "
                 "leave it empty"
             )
+    anatomical = _anatomical(name, v, known)
     return JointConfig(
         name=name,
         type=v["type"],
@@ -640,7 +683,32 @@ def _joint_config(
         axis_from_marker=from_marker,
         publish_unidentified=v["publish_unidentified"],
         freeze_unidentified=v["freeze_unidentified"],
+        anatomical=anatomical,
     )
+
+
+def _anatomical(name: str, v: Mapping[str, Any], known: set[str]) -> tuple[tuple[str, str], ...]:
+    """The ``anatomical.*`` landmarks, checked: names from marker_names, whole groups, the right joint type."""
+    given = {role: v[f"anatomical.{role}"] for roles in ANATOMICAL_GROUPS.values() for role in roles}
+    for role, marker in given.items():
+        if marker and marker not in known:
+            raise ConfigError(f"{name}.anatomical.{role}: expected a name from marker_names, got {marker!r}")
+    for group, roles in ANATOMICAL_GROUPS.items():
+        named = [r for r in roles if given[r]]
+        if named and len(named) < len(roles):
+            missing = [f"{name}.anatomical.{r}" for r in roles if not given[r]]
+            raise ConfigError(f"{name}.anatomical: the {group} landmarks go together; missing {', '.join(missing)}")
+        markers = [given[r] for r in named]
+        if len(set(markers)) != len(markers):
+            raise ConfigError(f"{name}.anatomical: a marker is named for two {group} landmarks: {markers!r}")
+    kind = {"pelvis": "ball", "epicondyles": "hinge"}
+    for group, roles in ANATOMICAL_GROUPS.items():
+        if given[roles[0]] and v["type"] != kind[group]:
+            raise ConfigError(f"{name}.anatomical.{roles[0]}: the {group} landmarks are for {kind[group]} joints "
+                              f"(type is {v['type']!r})")
+        if given[roles[0]] and not (v["parent_markers"] or v["child_markers"]):
+            raise ConfigError(f"{name}.anatomical.{roles[0]}: needs marker inputs (this joint reads only pose topics)")
+    return tuple((r, m) for r, m in given.items() if m)
 
 
 def calibration_path(text: str) -> Path:

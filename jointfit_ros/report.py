@@ -25,7 +25,6 @@ matplotlib is needed only for the figures (imported by :func:`joint_figure`).
 
 from __future__ import annotations
 
-import html
 import io
 import math
 import multiprocessing
@@ -41,8 +40,10 @@ from jointfit_core.errors import MissingDependencyError
 from jointfit_core.gate import gated_verdict
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.pose import poses_from_markers
+from jointfit_core.rom import RangeOfMotion
 from jointfit_core.segments import PoseSumsCentre
 
+from .anatomy_report import anatomical_summary, joint_rom, rom_summary
 from .bag_blocks import can_fork
 from .offline import FitRun, JointTrace
 from .runner import JointRunner
@@ -51,10 +52,10 @@ __all__ = [
     "fit_summary",
     "joint_figure",
     "joint_reports",
-    "html_page",
     "SegmentGeometry",
     "geometries",
     "segment_geometry",
+    "length_unit",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -93,16 +94,31 @@ class SegmentGeometry:
         two centres; hinge, of the parent's axis point from the child's axis
         line), input units; NaN where a segment is not posed; None without a
         final estimate.
+    R_parent_child : ndarray, shape (N, 3, 3) or None
+        Per frame, the child's orientation in the parent frame (NaN where a segment is not posed).
+    landmarks_parent : dict of str to (ndarray (3,), float, int)
+        Each ``<joint>.anatomical.*`` marker in the parent frame: the median over the posed frames where it is
+        visible, the rms distance of those frames from it (input units: how rigidly it moves with the parent)
+        and their number.
     """
 
     def __init__(
-        self, t: FloatArray, rp: FloatArray, rc: FloatArray, cip: FloatArray, joint_residual: FloatArray | None = None
+        self,
+        t: FloatArray,
+        rp: FloatArray,
+        rc: FloatArray,
+        cip: FloatArray,
+        joint_residual: FloatArray | None = None,
+        R_parent_child: FloatArray | None = None,
+        landmarks_parent: dict[str, tuple[FloatArray, float, int]] | None = None,
     ) -> None:
         self.t = t
         self.residual_parent = rp
         self.residual_child = rc
         self.child_in_parent = cip
         self.joint_residual = joint_residual
+        self.R_parent_child = R_parent_child
+        self.landmarks_parent = landmarks_parent or {}
 
 
 def _residuals(markers: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -126,7 +142,28 @@ def segment_geometry(run: FitRun, trace: JointTrace) -> SegmentGeometry | None:
         rc, R_c, d_c = _residuals(child, tc)
         cip = (child - d_p[:, None, :]) @ R_p  # R_p^T (y - d_p) of every child marker
         joint = None if trace.final is None else _joint_residual(trace.final, R_p, d_p, R_c, d_c)
-    return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip, joint)
+        R_rel = np.swapaxes(R_p, 1, 2) @ R_c
+        landmarks = _landmarks_parent(run, r.cfg.anatomical, R_p, d_p)
+    return SegmentGeometry(run.stamps - run.stamps[0], rp, rc, cip, joint, R_rel, landmarks)
+
+
+def _landmarks_parent(
+    run: FitRun, anatomical: tuple[tuple[str, str], ...], R_p: FloatArray, d_p: FloatArray
+) -> dict[str, tuple[FloatArray, float, int]]:
+    """Each landmark marker in the parent frame: median over the frames, rms scatter about it, frames used."""
+    assert run.frames is not None
+    out: dict[str, tuple[FloatArray, float, int]] = {}
+    for _, marker in anatomical:
+        if marker in out:
+            continue
+        x = run.frames[:, run.cfg.marker_index(marker)]
+        local = np.einsum("nji,nj->ni", R_p, x - d_p)
+        local = local[np.isfinite(local).all(axis=1)]
+        if not local.shape[0]:
+            continue
+        med = np.median(local, axis=0)
+        out[marker] = (med, float(np.sqrt(np.mean(np.sum((local - med) ** 2, axis=1)))), int(local.shape[0]))
+    return out
 
 
 def geometries(run: FitRun) -> dict[str, SegmentGeometry | None]:
@@ -214,7 +251,15 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
                 col = col[np.isfinite(col)]
                 rms[name] = float(np.sqrt(np.mean(col**2))) if col.size else None
         out["marker_residual_rms"] = rms
+    out["range_of_motion"] = rom_summary(joint_rom(sol, geo))
+    if r.cfg.anatomical:
+        out["anatomical"] = anatomical_summary(r.cfg, sol, geo, length_unit(run))
     return out
+
+
+def length_unit(run: FitRun) -> str:
+    """The length unit of a run's numbers: the file's (C3D, TRC), else the configured ``units`` (bags)."""
+    return run.units or run.cfg.units
 
 
 def gated_share(r: JointRunner) -> dict[str, dict[str, float]]:
@@ -253,7 +298,8 @@ def fit_summary(
     -------
     dict
         ``input``, ``input_kind``, ``units`` (as the file declares them;
-        ``""`` for bags), ``inputs_read``, ``elapsed_s``, ``router`` (bag
+        ``""`` for bags), ``length_unit`` (the unit of every length: the
+        file's, else the configured ``units``), ``inputs_read``, ``elapsed_s``, ``router`` (bag
         message counters) and ``joints``: per joint its estimate in the
         parent and the child segment frames (the frames of the templates the
         calibration file stores) with covariances (units squared) and
@@ -267,6 +313,7 @@ def fit_summary(
         "input": str(run.path),
         "input_kind": run.kind,
         "units": run.units,
+        "length_unit": length_unit(run),
         "rate_hz": run.rate,
         "inputs_read": run.n_inputs,
         "elapsed_s": round(elapsed_s, 3),
@@ -399,8 +446,11 @@ def _draw_trajectories(ax: Any, geo: SegmentGeometry, sol: PoseSumsCentre | Pose
         ends = q + np.outer([-half, half], a) + float(np.median((flat - q) @ a)) * a
         ax.plot(ends[:, 0], ends[:, 1], ends[:, 2], "k-", lw=2, label="axis")
         ax.set_title("child markers in the parent frame\nwith their fitted circles and the axis", fontsize=9)
-    # Equal scales, so that spheres look round and circles circular.
+    # Equal scales, so that spheres look round and circles circular; the fitted centre (axis point) inside.
     flat = pts[np.isfinite(pts).all(axis=2)]
+    joint_point = sol.centre_parent if isinstance(sol, PoseSumsCentre) else sol.point_parent
+    if np.isfinite(joint_point).all():
+        flat = np.concatenate([flat, joint_point[None]]) if flat.size else joint_point[None]
     if flat.size:
         lo, hi = flat.min(axis=0), flat.max(axis=0)
         mid, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 1e-9)
@@ -500,6 +550,33 @@ def _draw_convergence(ax_est: Any, ax_sd: Any, trace: JointTrace, unit: str) -> 
         ax2.legend(fontsize=7, loc="upper right")
     ax_sd.legend(fontsize=7, loc="lower left")
     ax_sd.set_title("reported uncertainty vs frames used", fontsize=9)
+    plain_log_ticks(ax_sd.xaxis)
+    plain_log_ticks(ax_sd.yaxis)
+    if cps[0].cov_direction is not None:
+        plain_log_ticks(ax2.yaxis)
+
+
+def _plain(value: float, _pos: Any = None) -> str:
+    return f"{value:.6g}"
+
+
+def plain_log_ticks(axis: Any) -> None:
+    """Decimal labels (``20``, ``0.5``; never ``2x10^1``) on a log axis, at most ~6, minor ticks unlabelled.
+
+    Spans of less than a decade get evenly spaced ticks (a log locator would label every minor tick there, as
+    overlapping ``2.04x10^2 2.06x10^2 ...``).
+    """
+    from matplotlib.ticker import LogLocator, MaxNLocator, NullFormatter
+
+    lo, hi = sorted(axis.get_view_interval())
+    if lo > 0 and hi / lo < 10.0:
+        axis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 2.5, 5, 10]))
+    elif lo > 0 and hi / lo < 300.0:
+        axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0), numticks=7))
+    else:
+        axis.set_major_locator(LogLocator(base=10.0, subs=(1.0,), numticks=7))
+    axis.set_major_formatter(_plain)
+    axis.set_minor_formatter(NullFormatter())
 
 
 def _draw_ellipses(ax: Any, cov: FloatArray, unit: str, title: str) -> None:
@@ -522,6 +599,73 @@ def _draw_ellipses(ax: Any, cov: FloatArray, unit: str, title: str) -> None:
     ax.set_ylabel(f"second coordinate ({unit})")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
+
+
+def _draw_rom(ax: Any, geo: SegmentGeometry | None, rom: RangeOfMotion | None) -> None:
+    """The joint angles over time: a hinge's flexion about its axis, a ball's rotations about their principal axes."""
+    if geo is None or rom is None:
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no range of motion (needs the marker frames of both segments)", ha="center")
+        return
+    if rom.flexion_deg is not None:
+        series = [(rom.flexion_deg, f"about the hinge axis (range {rom.flexion_range_deg:.0f} deg)")]
+    else:
+        series = [(rom.angles_deg[:, k], f"about principal axis {k + 1} (range {rom.ranges_deg[k]:.0f} deg)")
+                  for k in range(3)]
+    run = 1
+    for k, (y, label) in enumerate(series):
+        style = {"linestyle": "-", "lw": 1, "color": f"C{k}", "label": label}
+        run = _plot_series(ax, geo.t, y, style, style, {"linestyle": "none", "marker": ".", "ms": 1.5})
+    shown = "every frame" if run == 1 else f"median and maximum of every {run} frames"
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("angle from the mean orientation (deg)")
+    ax.set_title(f"range of motion: the child's rotation in the parent frame\n{shown}", fontsize=9)
+    ax.legend(fontsize=7, loc="upper right")
+
+
+def anatomy_lines(anatomy: Mapping[str, Any], rom: Mapping[str, Any]) -> list[str]:
+    """The anatomical results and the range of motion in words, one line each (figure, one-line summary)."""
+    lines = []
+    if rom:
+        if "flexion_range_deg" in rom:
+            lines.append(f"flexion range about the axis: {rom['flexion_range_deg']:.0f} deg")
+        ranges = ", ".join(f"{v:.0f}" for v in rom["principal_ranges_deg"])
+        lines.append(f"rotation ranges about the principal axes: {ranges} deg")
+    pelvis = anatomy.get("pelvis")
+    if pelvis and "error" not in pelvis:
+        u = pelvis["unit"]
+        c, sd = pelvis["centre"], pelvis["sd"]
+        lines.append(f"{pelvis['side']} hip centre, ISB pelvis axes (origin mid-ASIS,")
+        lines.append("x anterior, y superior, z right):")
+        lines.append("  (" + ", ".join(f"{v:.0f}" for v in c) + ") +- (" + ", ".join(f"{v:.0f}" for v in sd) + f") {u}")
+        pw = pelvis["percent_width"]
+        lines.append(f"  = {pw[0]:.0f} %, {pw[1]:.0f} %, {pw[2]:.0f} % (lateral) of the")
+        lines.append(f"  inter-ASIS width {pelvis['width']:.0f} {u} (depth {pelvis['depth']:.0f} {u})")
+        for name, reg in pelvis["regressions"].items():
+            title = name.replace("_", " ").capitalize()
+            lines.append(f"  {title}: (" + ", ".join(f"{v:.0f}" for v in reg["centre"]) + f") {u}, "
+                         f"{reg['distance']:.0f} {u} away")
+    epi = anatomy.get("epicondyles")
+    if epi and "error" not in epi:
+        u = epi["unit"]
+        lines.append(f"axis to the epicondyle line: {epi['angle_to_epicondyle_line_deg']:.1f} deg "
+                     f"(direction sd {epi['direction_sd_deg']:.1f} deg)")
+        lines.append(f"epicondyle midpoint to the axis: {epi['distance_to_epicondyle_midpoint']:.1f} {u} "
+                     f"(width {epi['epicondyle_width']:.0f} {u})")
+    for key in ("error",):
+        if key in anatomy:
+            lines.append(f"anatomical results: {anatomy[key]}")
+    for part in ("pelvis", "epicondyles"):
+        if isinstance(anatomy.get(part), Mapping) and "error" in anatomy[part]:
+            lines.append(f"{part}: {anatomy[part]['error']}")
+    return lines
+
+
+def _draw_anatomy_text(ax: Any, lines: list[str]) -> None:
+    ax.axis("off")
+    text = "\n".join(lines) if lines else "no anatomical landmarks configured (<joint>.anatomical.*)"
+    ax.text(0.0, 1.0, text, ha="left", va="top", fontsize=8, family="monospace", transform=ax.transAxes)
+    ax.set_title("anatomical terms and range of motion", fontsize=9, loc="left")
 
 
 def _headline(trace: JointTrace, unit: str) -> str:
@@ -560,10 +704,10 @@ def joint_figure(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeome
         matplotlib is not installed.
     """
     plt = _pyplot()
-    unit = run.units or "input units"
-    fig = plt.figure(figsize=(17, 10))
+    unit = length_unit(run)
+    fig = plt.figure(figsize=(17, 13.5))
     try:
-        grid = fig.add_gridspec(2, 3, hspace=0.35, wspace=0.45)
+        grid = fig.add_gridspec(3, 3, hspace=0.42, wspace=0.45, height_ratios=(1.0, 1.0, 0.85))
         geo = _geometry(run, trace, geos)
         sol = trace.final
         if geo is not None and sol is not None:
@@ -583,6 +727,10 @@ def joint_figure(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeome
                 _draw_ellipses(fig.add_subplot(grid[1, 2]), sol.cov_parent, unit, "centre covariance (parent frame): 1, 2, 3 sd")
             else:
                 _draw_ellipses(fig.add_subplot(grid[1, 2]), sol.cov_point_parent, unit, "axis point covariance (parent frame): 1, 2, 3 sd")
+        rom = joint_rom(sol, geo)
+        _draw_rom(fig.add_subplot(grid[2, 0:2]), geo, rom)
+        anatomy = anatomical_summary(trace.runner.cfg, sol, geo, unit)
+        _draw_anatomy_text(fig.add_subplot(grid[2, 2]), anatomy_lines(anatomy, rom_summary(rom)))
         fig.suptitle(_headline(trace, unit), fontsize=11)
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=90)
@@ -649,27 +797,3 @@ def joint_reports(run: FitRun, *, parallel: bool | None = None) -> tuple[dict[st
         _FORKED_RUN[0] = None
     return {n: g for n, (g, _) in zip(names, results, strict=True)}, {n: f for n, (_, f) in zip(names, results, strict=True)}
 
-
-def html_page(summary: dict[str, Any], images: dict[str, str]) -> str:
-    """A single HTML page: per joint a table of the summary's scalars and its figure (``images``: joint -> file name)."""
-    parts = [
-        "<!doctype html><html><head><meta charset='utf-8'><title>jointfit report</title>",
-        "<style>body{font-family:sans-serif;margin:2em} td,th{padding:2px 8px;text-align:left;vertical-align:top}"
-        " img{max-width:100%}</style></head><body>",
-        f"<h1>jointfit report: {html.escape(summary['input'])}</h1>",
-        f"<p>{summary['inputs_read']} inputs read in {summary['elapsed_s']} s; units: "
-        f"{html.escape(summary['units'] or 'as the input')}; jointfit {html.escape(summary['jointfit_version'])}</p>",
-    ]
-    for joint in summary["joints"]:
-        parts.append(f"<h2>{html.escape(joint['name'])} ({html.escape(joint['type'])}): {html.escape(joint['status'])}</h2><table>")
-        for key, value in joint.items():
-            if key.startswith("cov") or key in ("name", "type"):
-                continue
-            if isinstance(value, list) and value and isinstance(value[0], float):
-                value = ", ".join(f"{v:.5g}" for v in value)
-            parts.append(f"<tr><th>{html.escape(key)}</th><td>{html.escape(str(value))}</td></tr>")
-        parts.append("</table>")
-        if joint["name"] in images:
-            parts.append(f"<p><img src='{html.escape(images[joint['name']])}' alt='{html.escape(joint['name'])}'></p>")
-    parts.append("</body></html>")
-    return "\n".join(parts)

@@ -207,7 +207,7 @@ def test_real_fixtures_report(
     png = (out / f"{joint}.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     width, height = struct.unpack(">II", png[16:24])
-    assert (width, height) == (1530, 900) and len(png) > 100_000  # six panels of data, not an empty canvas
+    assert (width, height) == (1530, 1215) and len(png) > 100_000  # eight panels of data, not an empty canvas
     html = (out / "report.html").read_text()
     assert f"src='{joint}.png'" in html and "identifiable" in html
     summary = json.loads((out / "summary.json").read_text())

@@ -1,0 +1,169 @@
+"""What ``jointfit fit`` says in anatomical terms: landmark frames and the range of motion, as plain types.
+
+ROS-free. :func:`anatomical_summary` expresses a joint's final estimate in
+the frames its ``<joint>.anatomical.*`` landmarks define
+(:mod:`jointfit_core.anatomy`); :func:`rom_summary` gives its range of
+motion (:mod:`jointfit_core.rom`). Both read the
+:class:`~jointfit_ros.report.SegmentGeometry` of the kept marker frames.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from jointfit_core.anatomy import axis_against_epicondyles, hip_in_pelvis
+from jointfit_core.errors import InputError
+from jointfit_core.hinge_from_sums import PoseSumsAxis
+from jointfit_core.rom import RangeOfMotion, range_of_motion
+from jointfit_core.segments import PoseSumsCentre
+
+from .params import JointConfig
+
+if TYPE_CHECKING:
+    from .report import SegmentGeometry
+
+__all__ = ["MM_PER_UNIT", "PELVIS_FRAME_TEXT", "anatomical_summary", "joint_rom", "rom_summary"]
+
+#: Millimetres per length unit, for the results quoted in mm.
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+PELVIS_FRAME_TEXT = "ISB pelvis axes (Wu et al. 2002), origin mid-ASIS: x anterior, y superior, z right"
+
+
+def _r(values: Any, digits: int = 2) -> Any:
+    return np.round(np.asarray(values, dtype=np.float64), digits).tolist()
+
+
+def _spread(geo: SegmentGeometry, markers: dict[str, str], scale: float) -> dict[str, float]:
+    return {m: round(geo.landmarks_parent[m][1] * scale, 2) for m in markers.values()}
+
+
+def _pelvis(cfg: JointConfig, sol: PoseSumsCentre, geo: SegmentGeometry, unit: str) -> dict[str, Any] | None:
+    roles = cfg.landmarks("pelvis")
+    if roles is None:
+        return None
+    missing = [m for m in roles.values() if m not in geo.landmarks_parent]
+    if missing:
+        return {"error": f"landmarks {missing} are never visible in a frame where the parent is posed"}
+    scale = MM_PER_UNIT.get(unit)
+    shown = "mm" if scale is not None else unit
+    s = scale or 1.0
+    thigh = np.nanmedian(geo.child_in_parent.reshape(-1, 3), axis=0)
+    ra, la, rp, lp = (geo.landmarks_parent[roles[r]][0] for r in ("rasis", "lasis", "rpsis", "lpsis"))
+    hip = hip_in_pelvis(sol.centre_parent, sol.cov_parent, ra, la, rp, lp, thigh_point=thigh, mm_per_unit=s)
+    out: dict[str, Any] = {
+        "frame": PELVIS_FRAME_TEXT,
+        "unit": shown,
+        "side": hip.side,
+        "centre": _r(hip.centre * s, 1),
+        "sd": _r(np.sqrt(np.clip(np.diag(hip.cov), 0.0, None)) * s, 2),
+        "percent_width": _r(hip.percent_width, 1),
+        "width": round(hip.width * s, 1),
+        "depth": round(hip.depth * s, 1),
+        "regressions": {},
+        "landmark_spread": _spread(geo, roles, s),
+    }
+    if scale is None:
+        out["note"] = f"unit {unit!r} unknown: the regressions' offsets (mm) are taken as {unit}"
+    for name, c in hip.regressions.items():
+        out["regressions"][name] = {"centre": _r(c * s, 1), "distance": round(hip.distance_to(name) * s, 1)}
+    return out
+
+
+def _epicondyles(cfg: JointConfig, sol: PoseSumsAxis, geo: SegmentGeometry, unit: str) -> dict[str, Any] | None:
+    roles = cfg.landmarks("epicondyles")
+    if roles is None:
+        return None
+    missing = [m for m in roles.values() if m not in geo.landmarks_parent]
+    if missing:
+        return {"error": f"landmarks {missing} are never visible in a frame where the parent is posed"}
+    scale = MM_PER_UNIT.get(unit)
+    s = scale or 1.0
+    knee = axis_against_epicondyles(
+        sol.point_parent,
+        sol.direction_parent,
+        sol.cov_direction_parent,
+        geo.landmarks_parent[roles["lateral_epicondyle"]][0],
+        geo.landmarks_parent[roles["medial_epicondyle"]][0],
+    )
+    return {
+        "unit": "mm" if scale is not None else unit,
+        "angle_to_epicondyle_line_deg": round(knee.angle_deg, 2),
+        "direction_sd_deg": round(knee.angle_sd_deg, 2),
+        "distance_to_epicondyle_midpoint": round(knee.distance * s, 1),
+        "epicondyle_width": round(knee.epicondyle_width * s, 1),
+        "landmark_spread": _spread(geo, roles, s),
+    }
+
+
+def anatomical_summary(
+    cfg: JointConfig, sol: PoseSumsCentre | PoseSumsAxis | None, geo: SegmentGeometry | None, unit: str
+) -> dict[str, Any]:
+    """The ``anatomical`` entry of a joint's summary (empty without landmarks).
+
+    Parameters
+    ----------
+    cfg : JointConfig
+        Its ``anatomical`` landmarks.
+    sol : PoseSumsCentre or PoseSumsAxis or None
+        The final estimate (parent frame).
+    geo : SegmentGeometry or None
+        Of the kept frames (the landmarks' positions in the parent frame).
+    unit : str
+        The input's length unit; results are in mm when it is m, cm or mm.
+
+    Returns
+    -------
+    dict
+        ``pelvis`` (ball joints): ``centre`` and ``sd`` in the ISB pelvis axes, ``percent_width`` (x, y and
+        lateral z as % of the inter-ASIS width), ``width``, ``depth``, ``side``, ``regressions`` (Bell 1990,
+        Harrington 2007: their centre and its distance from the estimate), ``landmark_spread`` (rms scatter
+        of each landmark in the parent frame). ``epicondyles`` (hinges): the axis's angle to the epicondyle
+        line, the direction sd, the distance of the epicondyles' midpoint from the axis, their width. Each
+        is ``{"error": ...}`` when it cannot be made.
+    """
+    if not cfg.anatomical:
+        return {}
+    if sol is None:
+        return {"error": "no estimate"}
+    if geo is None:
+        return {"error": "needs the marker frames (not made for pose inputs, chain joints or --no-report)"}
+    out: dict[str, Any] = {}
+    try:
+        if isinstance(sol, PoseSumsCentre):
+            part = _pelvis(cfg, sol, geo, unit)
+            if part is not None:
+                out["pelvis"] = part
+        else:
+            part = _epicondyles(cfg, sol, geo, unit)
+            if part is not None:
+                out["epicondyles"] = part
+    except InputError as exc:
+        out["error"] = str(exc)
+    return out
+
+
+def joint_rom(sol: PoseSumsCentre | PoseSumsAxis | None, geo: SegmentGeometry | None) -> RangeOfMotion | None:
+    """The range of motion of a joint's kept frames (None without them or with fewer than 2 posed frames)."""
+    if geo is None or geo.R_parent_child is None:
+        return None
+    axis = sol.direction_parent if isinstance(sol, PoseSumsAxis) else None
+    try:
+        return range_of_motion(geo.R_parent_child, axis)
+    except InputError:
+        return None
+
+
+def rom_summary(rom: RangeOfMotion | None) -> dict[str, Any]:
+    """The ``range_of_motion`` entry of a joint's summary (empty without one)."""
+    if rom is None:
+        return {}
+    out: dict[str, Any] = {
+        "frames": rom.n_frames,
+        "principal_ranges_deg": _r(rom.ranges_deg, 1),
+        "principal_axes_parent": _r(rom.axes, 3),
+    }
+    if rom.flexion_range_deg is not None:
+        out["flexion_range_deg"] = round(rom.flexion_range_deg, 1)
+    return out
