@@ -50,7 +50,7 @@ from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
 
-from .offline import READER_PROCESS_MIN_BYTES, FitRun, run_fit
+from .offline import READER_PROCESS_MIN_BYTES, FitRun, read_marker_file, run_fit, with_file_marker_names
 from .params import calibration_path, node_config, params_from_file
 from .report import fit_summary, html_page, joint_reports
 
@@ -154,7 +154,11 @@ def fit_main(argv: Sequence[str]) -> int:
     show = opts.progress or (not opts.quiet and sys.stderr.isatty())
     started = time.perf_counter()
     try:
-        cfg = node_config(params_from_file(opts.config, opts.node_name))
+        values = params_from_file(opts.config, opts.node_name)
+        recording = read_marker_file(opts.input)  # C3D/TRC (None for a bag): marker_names default to its labels
+        if recording is not None:
+            values = with_file_marker_names(values, recording.labels, Path(opts.input).name)
+        cfg = node_config(values)
         run = run_fit(
             opts.input,
             cfg,
@@ -162,6 +166,7 @@ def fit_main(argv: Sequence[str]) -> int:
             keep_frames=not opts.no_report,
             reader_process=False if opts.single_process else None,
             progress=_progress_printer(f"fitting {Path(opts.input).name}") if show else None,
+            data=recording,
         )
         geos, figures = ({}, {}) if opts.no_report else joint_reports(run)
         summary = fit_summary(run, elapsed_s=time.perf_counter() - started, version=__version__, geos=geos)
