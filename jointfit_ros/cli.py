@@ -219,7 +219,7 @@ def fit_main(argv: Sequence[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point ``jointfit``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    usage = f"usage: {PROG} {{fit,markers,replay}} ... (see '{PROG} fit --help', '{PROG} replay --help')"
+    usage = f"usage: {PROG} {{fit,markers,convert,replay}} ... (see '{PROG} fit --help', '{PROG} convert --help', ...)"
     if not args or args[0] in ("-h", "--help"):
         print(usage)
         sys.exit(0 if args else 2)
@@ -230,6 +230,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         from .markers_cli import markers_main
 
         sys.exit(markers_main(rest))
+    if command == "convert":
+        from .convert import convert_main
+
+        sys.exit(convert_main(rest))
     if command == "replay":
         from .replay import replay_main
 
