@@ -171,7 +171,7 @@ def _named(data: MarkerData) -> tuple[MarkerData, list[str]]:
     dropped = [label for label in data.labels if not (label and counts[label] == 1)]
     if len(keep) == len(data.labels):
         return data, []
-    return MarkerData(data.markers[:, keep], [data.labels[k] for k in keep], data.rate, data.units,
+    return MarkerData(data.markers[:, keep], tuple(data.labels[k] for k in keep), data.rate, data.units,
                       data.first_frame), dropped
 
 
