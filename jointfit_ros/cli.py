@@ -50,6 +50,7 @@ from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
 
+from .export import EXPORT_FORMATS, check_exportable, export_files
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, read_marker_file, run_fit, with_file_marker_names
 from .params import calibration_path, node_config, params_from_file
 from .report import fit_summary, html_page, joint_reports
@@ -66,6 +67,14 @@ class _UsageError(Exception):
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         raise _UsageError(message)
+
+
+def _formats(text: str) -> tuple[str, ...]:
+    formats = tuple(f.strip().lower() for f in text.split(",") if f.strip())
+    bad = [f for f in formats if f not in EXPORT_FORMATS]
+    if bad or not formats:
+        raise argparse.ArgumentTypeError(f"expected formats from {', '.join(EXPORT_FORMATS)}, got {text!r}")
+    return formats
 
 
 def _fit_parser() -> argparse.ArgumentParser:
@@ -85,6 +94,14 @@ def _fit_parser() -> argparse.ArgumentParser:
         "i.e. what the node holds at the end of the recording",
     )
     p.add_argument("--html", action="store_true", help="also write report.html")
+    p.add_argument(
+        "--export",
+        type=_formats,
+        default=(),
+        metavar="FORMATS",
+        help="also write the joints frame by frame (world frame): csv (joints.csv), trc, c3d (joints.trc, "
+        "joints.c3d: the markers plus <joint>_JC, <joint>_AX1, <joint>_AX2); comma separated, e.g. csv,trc",
+    )
     p.add_argument("--no-report", action="store_true", help="no figures (faster; summary and calibrations only)")
     p.add_argument(
         "--write-calibration",
@@ -159,11 +176,13 @@ def fit_main(argv: Sequence[str]) -> int:
         if recording is not None:
             values = with_file_marker_names(values, recording.labels, Path(opts.input).name)
         cfg = node_config(values)
+        if opts.export:
+            check_exportable(cfg)
         run = run_fit(
             opts.input,
             cfg,
             whole_recording=opts.window == "all",
-            keep_frames=not opts.no_report,
+            keep_frames=not opts.no_report or bool(opts.export),
             reader_process=False if opts.single_process else None,
             progress=_progress_printer(f"fitting {Path(opts.input).name}") if show else None,
             data=recording,
@@ -187,9 +206,12 @@ def fit_main(argv: Sequence[str]) -> int:
             joint["figure"] = str(out_dir / f"{name}.png") if name in figures else None
         summary["config"] = str(opts.config)
         summary["window"] = opts.window
+        exported = export_files(run, opts.export) if opts.export else {}
+        summary["exports"] = [str(out_dir / name) for name in exported]
 
         files: dict[str, bytes | str] = {f"{n}.calibration.yaml": calibration_text(d) for n, d in calibrations.items()}
         files.update({f"{n}.png": png for n, png in figures.items()})
+        files.update(exported)
         if opts.html:
             files["report.html"] = html_page(summary, {n: f"{n}.png" for n in figures})
         files["summary.json"] = json.dumps(summary, indent=2, allow_nan=False, default=str) + "\n"
@@ -209,7 +231,8 @@ def fit_main(argv: Sequence[str]) -> int:
         for joint in summary["joints"]:
             print(_one_line(run, joint))
         print(f"wrote {out_dir}/ ({len(calibrations)} calibration(s), summary.json"
-              + (f", {len(figures)} figure(s)" if figures else "") + (", report.html" if opts.html else "") + ")")
+              + (f", {len(figures)} figure(s)" if figures else "") + (", report.html" if opts.html else "")
+              + "".join(f", {name}" for name in exported) + ")")
         for path in installed:
             print(f"installed calibration {path}")
     warned = any(j.get("gate_warning") for j in summary["joints"])
