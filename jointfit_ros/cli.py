@@ -3,15 +3,19 @@
 Usage::
 
     jointfit fit INPUT --config FILE [--out DIR] [--node-name NAME] [--window {all,config}]
-                 [--html] [--no-report] [--write-calibration] [--single-process]
-                 [--progress | --quiet]
+                 [--html] [--no-report] [--export csv,trc,c3d] [--write-calibration]
+                 [--single-process] [--progress | --quiet]
     jointfit markers FILE        (labels, rate, units, frames and gaps of a C3D/TRC; a bag's topics)
+    jointfit convert FILE --to BAG [--type posearray|pointcloud2] [--topic T] [--frame-id F]
+                     [--storage mcap|sqlite3] [--start S] [--units U] [--force]
+                                 (a C3D/TRC as a rosbag2 bag; see jointfit_ros.convert)
     jointfit replay BAG [--rate R] [--loop] [--topics T ...] ...   (see jointfit_ros.replay)
     python -m jointfit_ros.cli fit ...
 
 ``jointfit fit`` runs the node's estimators (:mod:`jointfit_ros.offline`) over
 a whole recording, a rosbag2 bag (sqlite3 or mcap), a C3D or a TRC file,
-with the node's own parameter file, and writes to ``DIR`` (default
+with the node's own parameter file (for a C3D or TRC without ``marker_names``
+the file's labels are the marker names), and writes to ``DIR`` (default
 ``<input name>_jointfit`` next to the current directory):
 
 * ``<joint>.calibration.yaml``: the calibration the node loads (copy it to the
@@ -21,7 +25,10 @@ with the node's own parameter file, and writes to ``DIR`` (default
 * ``summary.json``: estimates in the parent and child segment frames, their
   covariances and standard deviations, residuals, verdicts and counters;
 * ``<joint>.png``: the report figure (:mod:`jointfit_ros.report`), unless
-  ``--no-report``; ``report.html`` with ``--html``.
+  ``--no-report``; ``report.html`` with ``--html``;
+* with ``--export``: ``joints.csv`` (the joints frame by frame in the world
+  frame, with their sd), ``joints.trc`` / ``joints.c3d`` (the markers plus
+  ``<joint>_JC``, ``<joint>_AX1``, ``<joint>_AX2``), see :mod:`jointfit_ros.export`.
 
 Everything is computed before anything is written, and every file is written
 to a temporary name and renamed: a failed run leaves ``DIR`` as it was.
