@@ -290,7 +290,7 @@ class ShapeTrack:
         codes = vis.astype(np.int64) @ np.left_shift(np.int64(1), np.arange(p, dtype=np.int64))
         latest = np.maximum.accumulate(np.where(vis, np.arange(k)[:, None], -1), axis=0)
         prev = np.empty_like(latest)
-        prev[0] = -1
+        prev[:1] = -1  # (a block in which the segment is never posed: no rows)
         prev[1:] = latest[:-1]
         inside = prev >= 0
         rows = np.maximum(prev, 0)

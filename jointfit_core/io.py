@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from .errors import InputError, MissingDependencyError
 
-__all__ = ["MarkerData", "read_c3d", "read_trc", "write_trc"]
+__all__ = ["MarkerData", "read_c3d", "read_trc", "trc_text", "write_trc"]
 
 #: Metres per unit, for :meth:`MarkerData.to_units`.
 _METRES_PER_UNIT: dict[str, float] = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -438,17 +438,21 @@ def _trc_cell(value: float) -> str:
     return "" if math.isnan(value) else repr(float(value))
 
 
-def write_trc(path: str | os.PathLike[str], data: MarkerData) -> None:
-    """Write marker trajectories as an OpenSim TRC file.
+def trc_text(data: MarkerData, name: str = "markers.trc") -> str:
+    """The text of an OpenSim TRC file of ``data`` (what :func:`write_trc` writes).
 
     Parameters
     ----------
-    path : str or os.PathLike
-        Output file; overwritten if it exists.
     data : MarkerData
         Markers of shape (N, P, 3) in ``data.units``. Missing markers (NaN)
         are written as empty cells. Coordinates are written with enough digits
         to read back exactly.
+    name : str
+        File name for the ``PathFileType`` line.
+
+    Returns
+    -------
+    str
 
     Raises
     ------
@@ -463,13 +467,12 @@ def write_trc(path: str | os.PathLike[str], data: MarkerData) -> None:
     """
     if not isinstance(data, MarkerData):
         raise InputError(f"data: expected a MarkerData, got {type(data).__name__}")
-    for name, text in [("units", data.units), *[("label", label) for label in data.labels]]:
+    for what, text in [("units", data.units), *[("label", label) for label in data.labels]]:
         if not text or any(ch in text for ch in "\t\r\n") or text != text.strip():
             raise InputError(
-                f"{name}: expected a non-empty name without tabs, line breaks or edge spaces, got {text!r}"
+                f"{what}: expected a non-empty name without tabs, line breaks or edge spaces, got {text!r}"
             )
     n_frames, n_markers, _ = data.markers.shape
-    file = Path(path)
     start = data.first_frame + 1
     values: list[object] = [
         f"{data.rate!r}",
@@ -482,7 +485,7 @@ def write_trc(path: str | os.PathLike[str], data: MarkerData) -> None:
         n_frames,
     ]
     out = [
-        f"PathFileType\t4\t(X/Y/Z)\t{file.name}",
+        f"PathFileType\t4\t(X/Y/Z)\t{name}",
         "\t".join(_TRC_KEYS),
         "\t".join(str(value) for value in values),
         "\t".join(["Frame#", "Time", *[f"{label}\t\t" for label in data.labels]]).rstrip("\t"),
@@ -494,4 +497,23 @@ def write_trc(path: str | os.PathLike[str], data: MarkerData) -> None:
         cells = [str(start + frame), repr(float(times[frame]))]
         cells.extend(_trc_cell(v) for v in data.markers[frame].reshape(-1))
         out.append("\t".join(cells))
-    file.write_text("\n".join(out) + "\n", encoding="utf-8")
+    return "\n".join(out) + "\n"
+
+
+def write_trc(path: str | os.PathLike[str], data: MarkerData) -> None:
+    """Write marker trajectories as an OpenSim TRC file (:func:`trc_text`).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file; overwritten if it exists.
+    data : MarkerData
+        Markers of shape (N, P, 3) in ``data.units``; NaN written as empty cells.
+
+    Raises
+    ------
+    InputError
+        As :func:`trc_text`.
+    """
+    file = Path(path)
+    file.write_text(trc_text(data, file.name), encoding="utf-8")

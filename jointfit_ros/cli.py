@@ -3,15 +3,19 @@
 Usage::
 
     jointfit fit INPUT --config FILE [--out DIR] [--node-name NAME] [--window {all,config}]
-                 [--html] [--no-report] [--write-calibration] [--single-process]
-                 [--progress | --quiet]
+                 [--html] [--no-report] [--export csv,trc,c3d] [--write-calibration]
+                 [--single-process] [--progress | --quiet]
     jointfit markers FILE        (labels, rate, units, frames and gaps of a C3D/TRC; a bag's topics)
+    jointfit convert FILE --to BAG [--type posearray|pointcloud2] [--topic T] [--frame-id F]
+                     [--storage mcap|sqlite3] [--start S] [--units U] [--force]
+                                 (a C3D/TRC as a rosbag2 bag; see jointfit_ros.convert)
     jointfit replay BAG [--rate R] [--loop] [--topics T ...] ...   (see jointfit_ros.replay)
     python -m jointfit_ros.cli fit ...
 
 ``jointfit fit`` runs the node's estimators (:mod:`jointfit_ros.offline`) over
 a whole recording, a rosbag2 bag (sqlite3 or mcap), a C3D or a TRC file,
-with the node's own parameter file, and writes to ``DIR`` (default
+with the node's own parameter file (for a C3D or TRC without ``marker_names``
+the file's labels are the marker names), and writes to ``DIR`` (default
 ``<input name>_jointfit`` next to the current directory):
 
 * ``<joint>.calibration.yaml``: the calibration the node loads (copy it to the
@@ -21,7 +25,10 @@ with the node's own parameter file, and writes to ``DIR`` (default
 * ``summary.json``: estimates in the parent and child segment frames, their
   covariances and standard deviations, residuals, verdicts and counters;
 * ``<joint>.png``: the report figure (:mod:`jointfit_ros.report`), unless
-  ``--no-report``; ``report.html`` with ``--html``.
+  ``--no-report``; ``report.html`` with ``--html``;
+* with ``--export``: ``joints.csv`` (the joints frame by frame in the world
+  frame, with their sd), ``joints.trc`` / ``joints.c3d`` (the markers plus
+  ``<joint>_JC``, ``<joint>_AX1``, ``<joint>_AX2``), see :mod:`jointfit_ros.export`.
 
 Everything is computed before anything is written, and every file is written
 to a temporary name and renamed: a failed run leaves ``DIR`` as it was.
@@ -50,8 +57,9 @@ from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
 
+from .export import EXPORT_FORMATS, check_exportable, export_files
 from .html_report import html_page
-from .offline import READER_PROCESS_MIN_BYTES, FitRun, run_fit
+from .offline import READER_PROCESS_MIN_BYTES, FitRun, read_marker_file, run_fit, with_file_marker_names
 from .params import calibration_path, node_config, params_from_file
 from .report import fit_summary, joint_reports, length_unit
 
@@ -67,6 +75,14 @@ class _UsageError(Exception):
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         raise _UsageError(message)
+
+
+def _formats(text: str) -> tuple[str, ...]:
+    formats = tuple(f.strip().lower() for f in text.split(",") if f.strip())
+    bad = [f for f in formats if f not in EXPORT_FORMATS]
+    if bad or not formats:
+        raise argparse.ArgumentTypeError(f"expected formats from {', '.join(EXPORT_FORMATS)}, got {text!r}")
+    return formats
 
 
 def _fit_parser() -> argparse.ArgumentParser:
@@ -86,6 +102,14 @@ def _fit_parser() -> argparse.ArgumentParser:
         "i.e. what the node holds at the end of the recording",
     )
     p.add_argument("--html", action="store_true", help="also write report.html")
+    p.add_argument(
+        "--export",
+        type=_formats,
+        default=(),
+        metavar="FORMATS",
+        help="also write the joints frame by frame (world frame): csv (joints.csv), trc, c3d (joints.trc, "
+        "joints.c3d: the markers plus <joint>_JC, <joint>_AX1, <joint>_AX2); comma separated, e.g. csv,trc",
+    )
     p.add_argument("--no-report", action="store_true", help="no figures (faster; summary and calibrations only)")
     p.add_argument(
         "--write-calibration",
@@ -182,14 +206,21 @@ def fit_main(argv: Sequence[str]) -> int:
     show = opts.progress or (not opts.quiet and sys.stderr.isatty())
     started = time.perf_counter()
     try:
-        cfg = node_config(params_from_file(opts.config, opts.node_name))
+        values = params_from_file(opts.config, opts.node_name)
+        recording = read_marker_file(opts.input)  # C3D/TRC (None for a bag): marker_names default to its labels
+        if recording is not None:
+            values = with_file_marker_names(values, recording.labels, Path(opts.input).name)
+        cfg = node_config(values)
+        if opts.export:
+            check_exportable(cfg)
         run = run_fit(
             opts.input,
             cfg,
             whole_recording=opts.window == "all",
-            keep_frames=not opts.no_report,
+            keep_frames=not opts.no_report or bool(opts.export),
             reader_process=False if opts.single_process else None,
             progress=_progress_printer(f"fitting {Path(opts.input).name}") if show else None,
+            data=recording,
         )
         geos, figures = ({}, {}) if opts.no_report else joint_reports(run)
         summary = fit_summary(run, elapsed_s=time.perf_counter() - started, version=__version__, geos=geos)
@@ -210,9 +241,12 @@ def fit_main(argv: Sequence[str]) -> int:
             joint["figure"] = str(out_dir / f"{name}.png") if name in figures else None
         summary["config"] = str(opts.config)
         summary["window"] = opts.window
+        exported = export_files(run, opts.export) if opts.export else {}
+        summary["exports"] = [str(out_dir / name) for name in exported]
 
         files: dict[str, bytes | str] = {f"{n}.calibration.yaml": calibration_text(d) for n, d in calibrations.items()}
         files.update({f"{n}.png": png for n, png in figures.items()})
+        files.update(exported)
         if opts.html:
             files["report.html"] = html_page(summary, {n: f"{n}.png" for n in figures})
         files["summary.json"] = json.dumps(summary, indent=2, allow_nan=False, default=str) + "\n"
@@ -232,7 +266,8 @@ def fit_main(argv: Sequence[str]) -> int:
         for joint in summary["joints"]:
             print(_one_line(run, joint))
         print(f"wrote {out_dir}/ ({len(calibrations)} calibration(s), summary.json"
-              + (f", {len(figures)} figure(s)" if figures else "") + (", report.html" if opts.html else "") + ")")
+              + (f", {len(figures)} figure(s)" if figures else "") + (", report.html" if opts.html else "")
+              + "".join(f", {name}" for name in exported) + ")")
         for path in installed:
             print(f"installed calibration {path}")
     warned = any(j.get("gate_warning") for j in summary["joints"])
@@ -242,7 +277,7 @@ def fit_main(argv: Sequence[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point ``jointfit``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    usage = f"usage: {PROG} {{fit,markers,replay}} ... (see '{PROG} fit --help', '{PROG} replay --help')"
+    usage = f"usage: {PROG} {{fit,markers,convert,replay}} ... (see '{PROG} fit --help', '{PROG} convert --help', ...)"
     if not args or args[0] in ("-h", "--help"):
         print(usage)
         sys.exit(0 if args else 2)
@@ -253,6 +288,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         from .markers_cli import markers_main
 
         sys.exit(markers_main(rest))
+    if command == "convert":
+        from .convert import convert_main
+
+        sys.exit(convert_main(rest))
     if command == "replay":
         from .replay import replay_main
 

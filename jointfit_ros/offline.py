@@ -29,11 +29,14 @@ marker frames.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
-from collections.abc import Callable, Generator
+from collections import Counter
+from collections.abc import Callable, Generator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,7 +52,7 @@ from .inputs import MessageRouter, Routed, route_frame
 from .params import ConfigError, NodeConfig
 from .runner import JointRunner
 
-__all__ = ["Checkpoint", "JointTrace", "FitRun", "input_kind", "run_fit"]
+__all__ = ["Checkpoint", "JointTrace", "FitRun", "input_kind", "read_marker_file", "with_file_marker_names", "run_fit"]
 
 FloatArray = NDArray[np.float64]
 
@@ -209,12 +212,92 @@ def _offline_config(cfg: NodeConfig, whole_recording: bool) -> NodeConfig:
     return dataclasses.replace(cfg, joints=tuple(joints))
 
 
-def _read_markers(path: Path, kind: str, cfg: NodeConfig) -> MarkerData:
+def read_marker_file(path: str | os.PathLike[str]) -> MarkerData | None:
+    """The markers of a C3D or TRC file; None for a bag (checked to exist, :func:`input_kind`).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file.
+    MissingDependencyError
+        ``ezc3d`` missing (C3D).
+    """
+    file = Path(path)
+    kind = input_kind(file)
+    if kind == "bag":
+        return None
+    return read_c3d(file) if kind == "c3d" else read_trc(file)
+
+
+#: The joint parameters that name markers.
+_MARKER_LISTS = ("parent_markers", "child_markers")
+_MARKER_NAMES = ("axis_toward_marker", "axis_from_marker")
+
+
+def with_file_marker_names(values: Mapping[str, Any], labels: Sequence[str], source: str) -> dict[str, Any]:
+    """Parameter values whose ``marker_names`` are a C3D/TRC file's labels when the values give none.
+
+    Parameters
+    ----------
+    values : mapping
+        Full parameter names to values (:func:`~jointfit_ros.params.params_from_file`).
+    labels : sequence of str
+        The file's marker labels, in file order.
+    source : str
+        The file's name, for the messages.
+
+    Returns
+    -------
+    dict
+        ``values`` unchanged when they give ``marker_names``; else with
+        ``marker_names`` = the labels that occur once in the file (empty and
+        repeated labels cannot be told apart and are left out), so that the
+        joints' ``parent_markers``, ``child_markers``, ``axis_toward_marker``
+        and ``axis_from_marker`` name file labels.
+
+    Raises
+    ------
+    ConfigError
+        A joint names a label the file lacks (the message lists the file's
+        labels, with the closest one), or one it holds more than once.
+    """
+    out = dict(values)
+    if out.get("marker_names"):
+        return out
+    counts = Counter(labels)
+    names = [label for label in labels if label and counts[label] == 1]
+    joints = out.get("joints")
+    for joint in joints if isinstance(joints, list) else []:
+        for key in (*_MARKER_LISTS, *_MARKER_NAMES):
+            given = out.get(f"{joint}.{key}")
+            wanted = [given] if isinstance(given, str) and given else given
+            if not isinstance(wanted, list) or not all(isinstance(m, str) for m in wanted):
+                continue  # a wrong type: node_config says so
+            for marker in wanted:
+                if counts[marker] > 1:
+                    raise ConfigError(
+                        f"{joint}.{key}: {source} holds the label {marker!r} {counts[marker]} times; "
+                        "markers of one name cannot be told apart"
+                    )
+                if marker not in counts:
+                    close = difflib.get_close_matches(marker, names, n=1, cutoff=0.5)
+                    hint = f"did you mean {close[0]!r}? " if close else ""
+                    raise ConfigError(
+                        f"{joint}.{key}: {marker!r} is not a marker label of {source} ({hint}its labels: "
+                        f"{', '.join(names)})"
+                    )
+    out["marker_names"] = names
+    return out
+
+
+def _read_markers(path: Path, kind: str, cfg: NodeConfig, data: MarkerData | None) -> MarkerData:
     if pose_joints := [j.name for j in cfg.joints if j.parent_pose_topic or j.child_pose_topic]:
         raise ConfigError(
             f"joints {pose_joints} read pose topics; a {kind.upper()} file holds markers only "
             "(use a bag, or give these joints parent_markers and child_markers)"
         )
+    if data is not None:
+        return data
     return read_c3d(path) if kind == "c3d" else read_trc(path)
 
 
@@ -363,6 +446,7 @@ def run_fit(
     keep_frames: bool = True,
     progress: ProgressFn | None = None,
     reader_process: bool | None = None,
+    data: MarkerData | None = None,
 ) -> FitRun:
     """Run every configured joint over a recording, in order, and solve at the end.
 
@@ -373,7 +457,9 @@ def run_fit(
     cfg : NodeConfig
         The node's configuration (:func:`~jointfit_ros.params.node_config`):
         bags are read on its ``marker_topic`` (as ``marker_type``) and pose
-        topics; C3D/TRC files give the markers named in ``marker_names``.
+        topics; C3D/TRC files give the markers named in ``marker_names``
+        (:func:`with_file_marker_names` makes them the file's labels when the
+        parameter file gives none).
     whole_recording : bool
         Every joint's estimate from all frames of the recording (default). False
         keeps the configured windows: the result is then what the node holds
@@ -390,6 +476,8 @@ def run_fit(
         Default: for bags of at least ``READER_PROCESS_MIN_BYTES`` when the
         process may fork (:func:`~jointfit_ros.bag_blocks.can_fork`).
         Unlabelled clouds and chain joints are always read in this process.
+    data : MarkerData, optional
+        C3D/TRC: the file's markers when already read (:func:`read_marker_file`).
 
     Returns
     -------
@@ -432,7 +520,7 @@ def run_fit(
         step = max(1, total // max(n_checkpoints, 1))
         events = _bag_events(run, topics, step, reader)
     else:
-        data = _read_markers(file, kind, cfg)
+        data = _read_markers(file, kind, cfg, data)
         total = data.n_frames
         run_cfg = _offline_config(cfg, whole_recording)
         run = FitRun(file, kind, run_cfg, [], units=data.units, rate=data.rate)
