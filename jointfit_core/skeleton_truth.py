@@ -254,6 +254,30 @@ class Skeleton:
         out: FloatArray = (np.einsum("nsij,smj->nsmi", R, local) + d[:, :, None, :]).reshape(R.shape[0], -1, 3)
         return out
 
+    def template_poses_at(self, times: ArrayLike, t_ref: float = 0.0) -> tuple[FloatArray, FloatArray]:
+        """True world poses of every segment's template frame (the node's segment frame, see :meth:`joints_local`).
+
+        Parameters
+        ----------
+        times : array_like, shape (N,)
+            Motion time (s).
+        t_ref : float
+            Motion time (s) of the first template frame.
+
+        Returns
+        -------
+        R : ndarray, shape (N, S, 3, 3)
+            ``R_world_template``: the segment's rotation since ``t_ref`` (identity at ``t_ref``).
+        origin : ndarray, shape (N, S, 3)
+            The centroid of the segment's markers in the world (m).
+        """
+        R, d = self.poses_at(times)
+        R_ref, _ = self.poses_at([t_ref])
+        centroids = np.stack([s.markers.mean(axis=0) for s in self.segments])  # (S, 3)
+        origin: FloatArray = np.einsum("nsij,sj->nsi", R, centroids) + d
+        R_template: FloatArray = np.einsum("nsij,skj->nsik", R, R_ref[0])
+        return R_template, origin
+
     def _local_point(self, s: SegmentSpec) -> FloatArray:
         """The joint's point in the parent's own frame: the centre, or the axis point nearest the parent centroid."""
         if s.kind != "hinge":
