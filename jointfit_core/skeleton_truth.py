@@ -9,7 +9,7 @@ Skeletons (:func:`make_skeleton`):
 
 * ``lower`` (7 segments, 6 joints): pelvis; right and left thigh, shank, foot.
   Hips are ball joints, knees hinges (flexion, axis tilted 3 deg), ankles hinges
-  (the talocrural axis, oblique: ~9 deg down and ~8 deg back toward the lateral side).
+  (the talocrural axis, oblique: ~7 deg down and ~9 deg back toward the lateral side).
 * ``full`` (14 segments, 12 joints): ``lower`` plus trunk, right and left upper arm,
   forearm and hand. Shoulders and wrists are ball joints (the wrist moves in flexion
   and deviation, with a little rotation), elbows hinges (flexion; no pronation). The
