@@ -129,6 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     opts = p.parse_args(argv)
     frames_per_round, rounds = (300, 1) if opts.quick else (opts.frames, opts.rounds)
     started = dt.datetime.now().astimezone()
+    commit = _commit()  # the code measured: before the run, in case of commits meanwhile
     sk = make_skeleton("full", seed=0)
     n = WARM + frames_per_round * rounds
     t = np.arange(n) / RATE
@@ -162,7 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     text = "\n".join([
         "# Per-message CPU of the node's path on the fake skeleton (issue 16: before the redesign)",
         "",
-        f"Command: `python bench/skeleton.py{' --quick' if opts.quick else ''}`; commit {_commit()}; "
+        f"Command: `python bench/skeleton.py{' --quick' if opts.quick else ''}`; commit {commit}; "
         f"{started:%Y-%m-%d %H:%M %Z}.",
         f"Machine: {machine()}.",
         "",
