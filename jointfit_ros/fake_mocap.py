@@ -6,22 +6,28 @@ move in a lab whose origin is a few metres away:
 * ``hip``: a ball joint, parent cluster PELV1..4, child cluster THIGH1..4;
 * ``knee``: a hinge, parent FEMUR1..4, child SHANK1..4, 1.5 m further along x;
 
-plus, optionally, ``EXTRA1..K`` static markers (lab equipment, stray
+or, with ``--skeleton lower|full``, a human skeleton instead
+(:mod:`jointfit_core.skeleton_truth`: ``lower`` = pelvis, thighs, shanks, feet with
+ball hips and hinge knees and ankles, 6 joints; ``full`` adds trunk, upper arms,
+forearms and hands with ball shoulders and wrists and hinge elbows, 12 joints;
+clusters ``<PREFIX>1..4``, marker names as in ``config/lower_body.yaml`` and
+``config/full_body.yaml``); plus, optionally, ``EXTRA1..K`` static markers (lab equipment, stray
 reflections) that pad the frame to realistic marker counts. Every frame adds
 Gaussian noise and drops each marker with a given probability.
 
 The console script ``jointfit_fake_mocap`` publishes the frames as serialized
 CDR bytes (the fast path of :mod:`jointfit_ros.conversions`) on ``markers``
-and the truth on ``truth/hip/centre``, ``truth/knee/centre``
-(``geometry_msgs/PointStamped``) and ``truth/knee/axis``
-(``geometry_msgs/Vector3Stamped``, unit direction in the world frame), all
-with the same stamp. The pure functions (:func:`marker_names`,
+and the truth on ``truth/<joint>/centre`` (``geometry_msgs/PointStamped``; for a
+hinge the axis point nearest the parent's cluster) and ``truth/<joint>/axis``
+(hinges, ``geometry_msgs/Vector3Stamped``, unit direction in the world frame), all
+with the same stamp; the joints are ``hip`` and ``knee``, or the skeleton's. The pure functions (:func:`marker_names`,
 :func:`make_rigs`, :func:`frame_at`, :func:`truth_at`) give tests and
 benchmarks the same truth without ROS.
 
 Example::
 
     jointfit_fake_mocap --rate 200 --format pointcloud2 --extra-markers 24 --ros-args -r markers:=/mocap/markers
+    jointfit_fake_mocap --skeleton full --rate 100
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ from sensor_msgs.msg import PointCloud2
 from jointfit_core.synthetic import TwoSegmentMotion, two_segment_motion
 
 from .conversions import pointcloud2_bytes, pose_array_bytes, stamp_from_ns
+from .fake_skeleton import SkeletonSource
 
 __all__ = [
     "RIGS",
@@ -297,7 +304,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """Options of ``jointfit_fake_mocap`` (ROS arguments already removed)."""
     p = argparse.ArgumentParser(
         prog="jointfit_fake_mocap",
-        description="Publish a synthetic mocap stream (a ball-joint hip and a hinge knee rig) with its truth.",
+        description="Publish a synthetic mocap stream (a ball-joint hip and a hinge knee rig, or a --skeleton) with its truth.",
         epilog="ROS arguments follow --ros-args, e.g. --ros-args -r markers:=/mocap/markers",
     )
     p.add_argument("--rate", type=_positive, default=100.0, help="frame rate (Hz), default 100")
@@ -337,8 +344,24 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=0, help="seed of the rigs and of the noise, default 0")
     p.add_argument("--topic", default="markers", help="marker topic, default 'markers'")
     p.add_argument("--frame-id", default="world", help="header.frame_id, default 'world'")
-    p.add_argument("--cycle", type=_positive, default=20.0, help="motion time scale (s), default 20")
-    return p.parse_args(argv)
+    p.add_argument(
+        "--cycle",
+        type=_positive,
+        default=None,
+        help="motion time scale (s), default 20 (the rigs: 3-10 cycles of each motion in it) or with --skeleton 10 "
+        "(every joint through its range in it)",
+    )
+    p.add_argument(
+        "--skeleton",
+        choices=("lower", "full"),
+        default=None,
+        help="publish a skeleton instead of the two rigs: lower (pelvis, thighs, shanks, feet: 6 joints) or full "
+        "(with trunk and arms: 12 joints); node parameters in config/lower_body.yaml, config/full_body.yaml",
+    )
+    opts = p.parse_args(argv)
+    if opts.cycle is None:
+        opts.cycle = 20.0 if opts.skeleton is None else 10.0
+    return opts
 
 
 class FakeMocapNode(Node):
@@ -354,10 +377,12 @@ class FakeMocapNode(Node):
         super().__init__("jointfit_fake_mocap")
         self.opts = opts
         self.scale = 1e-3 if opts.units == "m" else 1.0
-        self.rigs = make_rigs(opts.seed, cycle_s=opts.cycle)
         self.extra = extra_marker_positions(opts.extra_markers, opts.seed)
+        self.rigs = {} if opts.skeleton else make_rigs(opts.seed, cycle_s=opts.cycle)
+        self.skeleton = SkeletonSource(opts.skeleton, opts.seed, opts.cycle, self.extra) if opts.skeleton else None
         self.rng = np.random.default_rng([opts.seed, 2])
-        self.names = marker_names(opts.extra_markers)
+        self.names = self.skeleton.marker_names() if self.skeleton else marker_names(opts.extra_markers)
+        kinds = self.skeleton.kinds if self.skeleton else {name: rig.kind for name, rig in self.rigs.items()}
         self.done: Future = Future()
         self.frames = 0
         msg_type = PoseArray if opts.format == "pose_array" else PointCloud2
@@ -365,12 +390,12 @@ class FakeMocapNode(Node):
         self.pub_markers = self.create_publisher(msg_type, opts.topic, qos_profile_sensor_data)
         truth_qos = QoSProfile(depth=10)  # reliable: any subscriber matches
         self.pub_centre = {
-            name: self.create_publisher(PointStamped, f"truth/{name}/centre", truth_qos) for name in self.rigs
+            name: self.create_publisher(PointStamped, f"truth/{name}/centre", truth_qos) for name in kinds
         }
         self.pub_axis = {
             name: self.create_publisher(Vector3Stamped, f"truth/{name}/axis", truth_qos)
-            for name, rig in self.rigs.items()
-            if rig.kind == "hinge"
+            for name, kind in kinds.items()
+            if kind == "hinge"
         }
         self.start_ns = int(self.get_clock().now().nanoseconds)
         self.timer = self.create_timer(1.0 / opts.rate, self._tick)
@@ -385,6 +410,10 @@ class FakeMocapNode(Node):
             f"at {self.opts.rate:g} Hz in {unit}, frame '{self.opts.frame_id}'"
         )
         log.info("marker order (row / label k): " + ", ".join(f"{k}:{n}" for k, n in enumerate(self.names)))
+        if self.skeleton is not None:
+            log.info(f"{self.opts.skeleton} skeleton, every joint through its range within {self.opts.cycle:g} s")
+            for line in self.skeleton.truth_lines(s, unit):
+                log.info(line)
         for name, rig in self.rigs.items():
             centre, axis = truth_in_template_frame(rig, t0=0.0)
             what = "centre" if rig.kind == "ball" else "axis point"
@@ -403,7 +432,10 @@ class FakeMocapNode(Node):
         now_ns = int(self.get_clock().now().nanoseconds)
         t = (now_ns - self.start_ns) * 1e-9
         o = self.opts
-        frame = frame_at(self.rigs, t, self.rng, o.noise, o.occlusion, extra=self.extra) * self.scale
+        if self.skeleton is not None:
+            frame = self.skeleton.frame(t, self.rng, o.noise, o.occlusion) * self.scale
+        else:
+            frame = frame_at(self.rigs, t, self.rng, o.noise, o.occlusion, extra=self.extra) * self.scale
         missing = np.isnan(frame[:, 0])
         if o.format == "pose_array":
             if o.zeros:
@@ -428,18 +460,22 @@ class FakeMocapNode(Node):
             self.done.set_result(self.frames)
 
     def _publish_truth(self, now_ns: int, t: float) -> None:
-        truth = truth_at(self.rigs, t)
+        if self.skeleton is not None:
+            centres, axes = self.skeleton.truth(t)
+        else:
+            truth = truth_at(self.rigs, t)
+            centres, axes = truth.centres, truth.axes
         stamp = stamp_from_ns(now_ns)
         for name, pub in self.pub_centre.items():
             msg = PointStamped()
             msg.header.stamp, msg.header.frame_id = stamp, self.opts.frame_id
-            c = truth.centres[name] * self.scale
+            c = centres[name] * self.scale
             msg.point.x, msg.point.y, msg.point.z = float(c[0]), float(c[1]), float(c[2])
             pub.publish(msg)
         for name, pub in self.pub_axis.items():
             msg = Vector3Stamped()
             msg.header.stamp, msg.header.frame_id = stamp, self.opts.frame_id
-            a = truth.axes[name]
+            a = axes[name]
             msg.vector.x, msg.vector.y, msg.vector.z = float(a[0]), float(a[1]), float(a[2])
             pub.publish(msg)
 
