@@ -7,6 +7,8 @@ Usage::
                  [--progress | --quiet]
     jointfit markers FILE        (labels, rate, units, frames and gaps of a C3D/TRC; a bag's topics)
     jointfit replay BAG [--rate R] [--loop] [--topics T ...] ...   (see jointfit_ros.replay)
+    jointfit status [--node NAME] [--once] [--timeout S]           (a running node's /diagnostics)
+    jointfit call {reset,freeze,save} [true|false] [--node NAME] [--timeout S]   (its services)
     python -m jointfit_ros.cli fit ...
 
 ``jointfit fit`` runs the node's estimators (:mod:`jointfit_ros.offline`) over
@@ -214,7 +216,10 @@ def fit_main(argv: Sequence[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point ``jointfit``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    usage = f"usage: {PROG} {{fit,markers,replay}} ... (see '{PROG} fit --help', '{PROG} replay --help')"
+    usage = (
+        f"usage: {PROG} {{fit,markers,replay,status,call}} ... (see '{PROG} fit --help', '{PROG} status --help', "
+        f"'{PROG} call --help', ...)"
+    )
     if not args or args[0] in ("-h", "--help"):
         print(usage)
         sys.exit(0 if args else 2)
@@ -229,6 +234,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         from .replay import replay_main
 
         sys.exit(replay_main(rest))
+    if command in ("status", "call"):
+        from .shell import call_main, status_main
+
+        sys.exit(status_main(rest) if command == "status" else call_main(rest))
     print(f"{PROG}: error: unknown command {command!r}; {usage}", file=sys.stderr)
     sys.exit(2)
 

@@ -401,6 +401,24 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "",
         "frame_id of `<joint>/centre_local` (the parent template frame); empty: `<joint>_parent`.",
     ),
+    ParamSpec(
+        "target_sd",
+        "double",
+        0.0,
+        "Done signal: /diagnostics says `done` once the joint is identifiable, its status has no warning and "
+        "its sd is at most this (ball: the centre's largest sd, input units, m for ROS; hinge: the direction's "
+        "largest sd, degrees); 0 (default): no done signal.",
+        minimum=0.0,
+        maximum=1e6,
+    ),
+    ParamSpec(
+        "auto_freeze",
+        "bool",
+        False,
+        "Once done (needs target_sd > 0): freeze the joint and save its calibration_file (when set) by itself, "
+        "once (logged; after `~/freeze` false it waits for `~/reset`); false (default): you call `~/freeze` "
+        "and `~/save`.",
+    ),
 )
 
 #: Parameters that may change while the node runs.
@@ -434,6 +452,8 @@ class JointConfig:
     axis_from_marker: str = ""
     publish_unidentified: bool = False
     freeze_unidentified: bool = False
+    target_sd: float = 0.0
+    auto_freeze: bool = False
 
     def segment_names(self) -> tuple[str, str]:
         """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
@@ -618,6 +638,8 @@ def _joint_config(
                 f"{name}.axis_toward_marker: needs marker inputs (this joint reads only pose topics); "
                 "leave it empty"
             )
+    if v["auto_freeze"] and not v["target_sd"] > 0.0:
+        raise ConfigError(f"{name}.auto_freeze: needs {name}.target_sd > 0 (the done signal it waits for)")
     return JointConfig(
         name=name,
         type=v["type"],
@@ -640,6 +662,8 @@ def _joint_config(
         axis_from_marker=from_marker,
         publish_unidentified=v["publish_unidentified"],
         freeze_unidentified=v["freeze_unidentified"],
+        target_sd=v["target_sd"],
+        auto_freeze=v["auto_freeze"],
     )
 
 
