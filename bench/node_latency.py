@@ -274,7 +274,10 @@ def _node_params(tmp: Path) -> Path:
     from jointfit_ros.fake_mocap import marker_names
 
     doc = yaml.safe_load(CONFIG.read_text(encoding="utf-8"))
-    doc["jointfit"]["ros__parameters"]["marker_names"] = marker_names(EXTRA_MARKERS)
+    p = doc["jointfit"]["ros__parameters"]
+    p["marker_names"] = marker_names(EXTRA_MARKERS)
+    for joint in p["joints"]:  # the quick start's calibration files are the user's: neither loaded nor written
+        p[joint]["calibration_file"] = ""
     path = tmp / "node_latency_params.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     return path

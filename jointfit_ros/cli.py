@@ -10,6 +10,8 @@ Usage::
                      [--storage mcap|sqlite3] [--start S] [--units U] [--force]
                                  (a C3D/TRC as a rosbag2 bag; see jointfit_ros.convert)
     jointfit replay BAG [--rate R] [--loop] [--topics T ...] ...   (see jointfit_ros.replay)
+    jointfit status [--node NAME] [--once] [--timeout S]           (a running node's /diagnostics)
+    jointfit call {reset,freeze,save} [true|false] [--node NAME] [--timeout S]   (its services)
     python -m jointfit_ros.cli fit ...
 
 ``jointfit fit`` runs the node's estimators (:mod:`jointfit_ros.offline`) over
@@ -277,7 +279,10 @@ def fit_main(argv: Sequence[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point ``jointfit``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    usage = f"usage: {PROG} {{fit,markers,convert,replay}} ... (see '{PROG} fit --help', '{PROG} convert --help', ...)"
+    usage = (
+        f"usage: {PROG} {{fit,markers,convert,replay,status,call}} ... (see '{PROG} fit --help', "
+        f"'{PROG} convert --help', '{PROG} status --help', '{PROG} call --help', ...)"
+    )
     if not args or args[0] in ("-h", "--help"):
         print(usage)
         sys.exit(0 if args else 2)
@@ -296,6 +301,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         from .replay import replay_main
 
         sys.exit(replay_main(rest))
+    if command in ("status", "call"):
+        from .shell import call_main, status_main
+
+        sys.exit(status_main(rest) if command == "status" else call_main(rest))
     print(f"{PROG}: error: unknown command {command!r}; {usage}", file=sys.stderr)
     sys.exit(2)
 

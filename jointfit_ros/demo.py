@@ -115,8 +115,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
+    opts.out.mkdir(parents=True, exist_ok=True)
+    override = opts.out / "demo_params_override.yaml"  # the demo starts from scratch: no calibration files
+    override.write_text(
+        "jointfit:\n  ros__parameters:\n    hip: {calibration_file: ''}\n    knee: {calibration_file: ''}\n",
+        encoding="utf-8",
+    )
     node_proc = subprocess.Popen(
-        [sys.executable, "-m", "jointfit_ros.node", "--ros-args", "--params-file", str(CONFIG)],
+        [sys.executable, "-m", "jointfit_ros.node", "--ros-args", "--params-file", str(CONFIG),
+         "--params-file", str(override)],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.STDOUT,

@@ -63,6 +63,7 @@ from .params import (
 )
 from .runner import ERROR, OK, STALE, WARN, JointRunner
 from .solver_process import SolverProcess
+from .status_log import StatusLog
 
 __all__ = ["JointfitNode", "main"]
 
@@ -127,6 +128,7 @@ class JointfitNode(Node):
         self.router = MessageRouter(self.cfg, self.runners.values(), clock=time.monotonic_ns)
         self.counters = self.router.counters
         self._warned: set[str] = set()
+        self._status_log = StatusLog()  # WARN/ERROR statuses on the console, once per change
         self._last_outputs: dict[str, tuple[int, str, JointOutput]] = {}
         if self.router.marker_runners:
             msg_type = PoseArray if self.cfg.marker_type == "pose_array" else PointCloud2
@@ -378,11 +380,34 @@ class JointfitNode(Node):
             level = max(level, WARN)
             message += "; " + "; ".join(graph)
             node_values["graph problems"] = " | ".join(graph)
-        arr.status.append(diagnostic_status("jointfit: input", level, message, node_values))
+        node_id = self.get_fully_qualified_name()  # which node a status is from (`jointfit status --node`)
+        arr.status.append(diagnostic_status("jointfit: input", level, message, node_values, hardware_id=node_id))
         for name, runner in self.runners.items():
             st = runner.live_status(now)
-            arr.status.append(diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values))
+            arr.status.append(
+                diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values, hardware_id=node_id)
+            )
+            note = runner.auto_freeze()  # once done: freeze and save (the next status says frozen)
+            if note:
+                self.get_logger().info(f"{name}: {note}")
         self._diag_pub.publish(arr)
+        self._log_changes(arr)
+
+    def _log_changes(self, arr: DiagnosticArray) -> None:
+        """Log each status that turned WARN or ERROR (once per condition) and its return to OK."""
+        logger = self.get_logger()
+        for st in arr.status:
+            line = self._status_log.change(st.name, st.level[0], st.message)
+            if line is None:
+                continue
+            level, text = line
+            # (one call site per severity: rclpy refuses to change a call site's severity)
+            if level == ERROR:
+                logger.error(text)
+            elif level == WARN:
+                logger.warning(text)
+            else:
+                logger.info(text)
 
     def _graph_problems(self) -> list[str]:
         """Same-name nodes and wrong-type publishers on the inputs (:func:`~jointfit_ros.graph.graph_problems`); logged once each."""

@@ -430,6 +430,24 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "frame_id of `<joint>/centre_local` (the parent template frame); empty: `<joint>_parent`.",
     ),
     *_ANATOMICAL_PARAMS,
+    ParamSpec(
+        "target_sd",
+        "double",
+        0.0,
+        "Done signal: /diagnostics says `done` once the joint is identifiable, its status has no warning and "
+        "its sd is at most this (ball: the centre's largest sd, input units, m for ROS; hinge: the direction's "
+        "largest sd, degrees); 0 (default): no done signal.",
+        minimum=0.0,
+        maximum=1e6,
+    ),
+    ParamSpec(
+        "auto_freeze",
+        "bool",
+        False,
+        "Once done (needs target_sd > 0): freeze the joint and save its calibration_file (when set) by itself, "
+        "once (logged; after `~/freeze` false it waits for `~/reset`); false (default): you call `~/freeze` "
+        "and `~/save`.",
+    ),
 )
 
 #: Landmark roles of ``<joint>.anatomical.*`` by group: all of a group or none.
@@ -476,6 +494,8 @@ class JointConfig:
         given = dict(self.anatomical)
         roles = ANATOMICAL_GROUPS[group]
         return {r: given[r] for r in roles} if all(r in given for r in roles) else None
+    target_sd: float = 0.0
+    auto_freeze: bool = False
 
     def segment_names(self) -> tuple[str, str]:
         """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
@@ -661,6 +681,8 @@ def _joint_config(
                 "leave it empty"
             )
     anatomical = _anatomical(name, v, known)
+    if v["auto_freeze"] and not v["target_sd"] > 0.0:
+        raise ConfigError(f"{name}.auto_freeze: needs {name}.target_sd > 0 (the done signal it waits for)")
     return JointConfig(
         name=name,
         type=v["type"],
@@ -684,6 +706,8 @@ def _joint_config(
         publish_unidentified=v["publish_unidentified"],
         freeze_unidentified=v["freeze_unidentified"],
         anatomical=anatomical,
+        target_sd=v["target_sd"],
+        auto_freeze=v["auto_freeze"],
     )
 
 

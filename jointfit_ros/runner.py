@@ -38,6 +38,7 @@ from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .activity import InputActivity
 from .params import JointConfig, NodeConfig, calibration_path
+from .progress import coverage_values, done_check, estimate_sd
 from .sync import StampMatcher
 
 __all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE"]
@@ -675,6 +676,8 @@ class JointRunner:
             self.counters[key] = 0
         self.last_error = ""
         self.loaded_from = ""
+        self.done = False
+        self.auto_note = ""
 
     def freeze(self, on: bool) -> str:
         """Freeze (True) or thaw (False) the estimate; returns what happened in words.
@@ -745,7 +748,8 @@ class JointRunner:
         return (len(self._stamps) - 1) / (self._stamps[-1] - self._stamps[0])
 
     def status(self) -> Status:
-        """Level, message and values for ``/diagnostics``."""
+        """Level, message and values for ``/diagnostics`` (sets :attr:`done`)."""
+        self.done = False
         est = self.estimator
         values: dict[str, Any] = {
             "type": self.cfg.type,
@@ -782,9 +786,10 @@ class JointRunner:
         units = unit_problem(est.length_scale, self.node.units)
         if units:
             values["unit check"] = units
-        values["noise sd parent"] = sigma_p
-        values["noise sd child"] = sigma_c
-        values["rms residual"] = sol.rms
+        u = self.node.units
+        values[f"noise sd parent ({u})"] = sigma_p
+        values[f"noise sd child ({u})"] = sigma_c
+        values[f"rms residual ({u})"] = sol.rms
         values["identifiable"] = sol.identifiable
         if not est.frozen and est.n_window >= 3:
             try:
@@ -794,13 +799,16 @@ class JointRunner:
             except InputError:
                 pass
         if isinstance(sol, PoseSumsCentre):
-            values["centre_parent"] = np.round(sol.centre_parent, 6).tolist()
-            values["sd (max)"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_parent)[-1], 0.0)))
+            values[f"centre_parent ({u})"] = np.round(sol.centre_parent, 6).tolist()
+            values[f"centre sd ({u})"] = estimate_sd(sol)[0]
         else:
-            values["direction_parent"] = np.round(sol.direction_parent, 6).tolist()
-            values["point_parent"] = np.round(sol.point_parent, 6).tolist()
+            values["direction_parent (unit vector)"] = np.round(sol.direction_parent, 6).tolist()
+            values[f"point_parent ({u})"] = np.round(sol.point_parent, 6).tolist()
             values["direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
-            values["point sd (max)"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
+            values[f"point sd ({u})"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
+        values.update(coverage_values(est, sol)[1])
+        if self.cfg.target_sd > 0.0:
+            values[f"target sd ({u if isinstance(sol, PoseSumsCentre) else 'deg'})"] = self.cfg.target_sd
         gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names(), est.joint_gated_frames)
         if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
             return Status(WARN, gated, values)
@@ -815,9 +823,48 @@ class JointRunner:
             return Status(WARN, units, values)
         if self.sign_problem:
             return Status(WARN, f"hinge sign convention not honoured: {self.sign_problem}", values)
+        done, progress = done_check(sol, self.cfg.target_sd, self.node.units)
+        done = done and self._sign_fixed
+        self.done = done
+        if self.cfg.target_sd > 0.0:
+            values["done"] = done
+        message = "frozen" if est.frozen else "estimating"
+        if progress:
+            message += f"; {progress}"
+        if self.auto_note:
+            message += f"; {self.auto_note}"
         if self.last_error and (self.counters["malformed"] or self.counters["estimate_failures"]):
-            return Status(OK, f"{'frozen' if est.frozen else 'estimating'}; last problem: {self.last_error}", values)
-        return Status(OK, "frozen" if est.frozen else "estimating", values)
+            return Status(OK, f"{message}; last problem: {self.last_error}", values)
+        return Status(OK, message, values)
+
+    # ------------------------------------------------------------------ done signal
+
+    #: Whether the latest :meth:`status` was done (identifiable, no warning, sd <= target_sd, hinge sign chosen).
+    done: bool = False
+    #: What auto_freeze did, in words (empty until it acted; cleared by :meth:`reset`).
+    auto_note: str = ""
+
+    def auto_freeze(self) -> str:
+        """With ``auto_freeze``: freeze and save once the latest status was done; returns what was done (else "").
+
+        Acts once: after a later ``~/freeze`` false it waits for :meth:`reset`.
+        A save that fails leaves the joint frozen and says why.
+        """
+        if not (self.cfg.auto_freeze and self.done) or self.auto_note or self.estimator.frozen:
+            return ""
+        try:
+            self.freeze(True)
+        except JointfitError as exc:
+            self.auto_note = f"auto_freeze: not frozen: {exc}"
+            return self.auto_note
+        note = "auto_freeze: frozen"
+        if self.cfg.calibration_file:
+            try:
+                note += f", saved {self.save()}"
+            except (JointfitError, OSError) as exc:
+                note += f", not saved: {exc}"
+        self.auto_note = note
+        return note
 
     # ------------------------------------------------------------------ recent activity (wall clock)
 

@@ -69,9 +69,9 @@ def _params(path: Path, calibration: Path) -> Path:
 class _Client:
     """The test's side: a publisher of markers, subscribers of the outputs and service clients."""
 
-    def __init__(self) -> None:
+    def __init__(self, domain: str = DOMAIN) -> None:
         self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=int(DOMAIN))
+        rclpy.init(context=self.context, domain_id=int(domain))
         self.node = Node("jointfit_test_client", context=self.context)
         self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -116,10 +116,10 @@ class _Client:
         rclpy.try_shutdown(context=self.context)
 
 
-def _start_node(params: Path) -> subprocess.Popen[bytes]:
+def _start_node(params: Path, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
         [sys.executable, "-m", "jointfit_ros.node", "--ros-args", "--params-file", str(params)],
-        env=ENV,
+        env=ENV if env is None else env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
     )

@@ -1,0 +1,305 @@
+"""``jointfit status`` and ``jointfit call``: watch a running node and call its services from the shell.
+
+Usage::
+
+    jointfit status [--node NAME] [--once] [--timeout S]
+    jointfit call {reset,freeze,save} [true|false] [--node NAME] [--timeout S]
+
+``status`` subscribes to ``/diagnostics`` and prints one line per joint of the
+node (level, estimate with its sd and units, coverage, frames, gated shares,
+the status message), refreshed at every diagnostics message; ``--once`` prints
+one round and exits. ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
+``<node>/freeze`` (std_srvs/SetBool, default true) or ``<node>/save``
+(std_srvs/Trigger) and prints the node's answer.
+
+Exit status: 0 success (``call``: the node answered success true); 1 the node
+answered success false, or nothing arrived within ``--timeout`` (one line on
+stderr); 2 bad arguments; 130 interrupted (``call``; ``status`` ends with 0 on
+Ctrl-C). ROS is reached as any rclpy program does: same ``ROS_DOMAIN_ID``,
+``ROS_AUTOMATIC_DISCOVERY_RANGE``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
+
+__all__ = ["status_main", "call_main", "status_lines", "node_path"]
+
+LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def node_path(name: str) -> str:
+    """The fully qualified node name: ``jointfit`` -> ``/jointfit``; ``/lab1/jointfit`` as given."""
+    name = name.strip().rstrip("/")
+    return name if name.startswith("/") else "/" + name
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not value > 0.0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
+
+
+def _add_node(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--node",
+        default="jointfit",
+        help="the node's name, with its namespace if any (default jointfit; e.g. /lab1/jointfit)",
+    )
+
+
+# ---------------------------------------------------------------------------- status lines
+
+
+def _unit(key: str) -> str:
+    return key[key.rfind("(") + 1 : -1] if key.endswith(")") else ""
+
+
+def _find(values: dict[str, str], prefix: str) -> tuple[str, str] | None:
+    """The value and unit of the first key starting with ``prefix`` (keys end in ``(unit)``)."""
+    for key, value in values.items():
+        if key.startswith(prefix):
+            return value, _unit(key)
+    return None
+
+
+def _vector(text: str) -> str:
+    try:
+        numbers = [float(v) for v in text.strip("[] ").split(",")]
+    except ValueError:
+        return text
+    return "(" + ", ".join(f"{v:.4g}" for v in numbers) + ")"
+
+
+def _estimate(values: dict[str, str]) -> str:
+    """The estimate with its sd and units, e.g. ``centre (0.0123, -0.045, 0.078) m sd 0.0011 m``."""
+    centre, sd = _find(values, "centre_parent ("), _find(values, "centre sd (")
+    if centre is not None:
+        text = f"centre {_vector(centre[0])} {centre[1]}"
+        return text + (f" sd {float(sd[0]):.3g} {sd[1]}" if sd else "")
+    direction = _find(values, "direction_parent (")
+    if direction is None:
+        return "no estimate yet"
+    text = f"axis {_vector(direction[0])}"
+    dir_sd = values.get("direction sd (deg)")
+    if dir_sd is not None:
+        text += f" sd {float(dir_sd):.3g} deg"
+    point, point_sd = _find(values, "point_parent ("), _find(values, "point sd (")
+    if point is not None:
+        text += f", point {_vector(point[0])} {point[1]}"
+        if point_sd is not None:
+            text += f" sd {float(point_sd[0]):.3g} {point_sd[1]}"
+    return text
+
+
+def _joint_line(name: str, level: str, message: str, values: dict[str, str]) -> str:
+    parts = [f"{name} {level}", _estimate(values)]
+    if "coverage (%)" in values:
+        parts.append(f"coverage {values['coverage (%)']} %")
+    if values.get("done") == "True":
+        parts.append("DONE")
+    parts.append(f"{values.get('frames in window', '0')} frames in window")
+    gated = [values.get(f"{side} gated (%)") for side in ("parent", "child")]
+    if all(g is not None for g in gated):
+        parts.append(f"gated {gated[0]}/{gated[1]} %")
+    if values.get("frozen") == "True":
+        parts.append("frozen")
+    parts.append(message)
+    return " | ".join(parts)
+
+
+def _input_line(level: str, message: str, values: dict[str, str]) -> str:
+    parts = [f"input {level}", f"{values.get('messages', '0')} messages"]
+    if "input rate (Hz)" in values:
+        parts.append(f"{values['input rate (Hz)']} Hz")
+    parts.append(message)
+    return " | ".join(parts)
+
+
+def status_lines(statuses: Sequence[Any], node: str) -> list[str]:
+    """One line for the node's input status and one per joint, from ``diagnostic_msgs/DiagnosticStatus`` messages.
+
+    Parameters
+    ----------
+    statuses : sequence of DiagnosticStatus
+        A ``/diagnostics`` message's statuses (any node's).
+    node : str
+        Fully qualified node name (:func:`node_path`); statuses whose
+        ``hardware_id`` names another node are left out (an empty one, from
+        a node that does not set it, is kept).
+
+    Returns
+    -------
+    list of str
+        Empty when none of the statuses is this node's.
+    """
+    lines: list[str] = []
+    for st in statuses:
+        if not st.name.startswith("jointfit: ") or st.hardware_id not in ("", node):
+            continue
+        level = LEVELS.get(st.level[0] if isinstance(st.level, bytes) else int(st.level), "?")
+        values = {kv.key: kv.value for kv in st.values}
+        name = st.name[len("jointfit: ") :]
+        if name == "input":
+            lines.insert(0, _input_line(level, st.message, values))
+        else:
+            lines.append(_joint_line(name, level, st.message, values))
+    return lines
+
+
+# ---------------------------------------------------------------------------- ROS
+
+
+class _Session:
+    """An rclpy context, node and executor of its own (closed by :meth:`close`)."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(args=[], context=self.context)
+        self.node = Node(f"jointfit_shell_{os.getpid()}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, done: Callable[[], bool], timeout: float | None) -> bool:
+        end = None if timeout is None else time.monotonic() + timeout
+        while end is None or time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.05)
+            if done():
+                return True
+        return done()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+
+
+def _status_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="jointfit status",
+        description="Watch a running jointfit node's /diagnostics: one line per joint, refreshed as they arrive.",
+    )
+    _add_node(p)
+    p.add_argument("--once", action="store_true", help="print one round and exit (1 if none arrives in time)")
+    p.add_argument(
+        "--timeout",
+        type=_positive,
+        default=None,
+        help="seconds to wait for the first message (default 5 with --once, else wait until one comes)",
+    )
+    return p
+
+
+def status_main(argv: Sequence[str]) -> int:
+    """``jointfit status``; returns the exit status."""
+    opts = _status_parser().parse_args(list(argv))
+    node = node_path(opts.node)
+    timeout = opts.timeout if opts.timeout is not None else (5.0 if opts.once else None)
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    session = _Session()
+    rounds: list[list[str]] = []
+    clear = sys.stdout.isatty() and not opts.once
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        lines = status_lines(msg.status, node)
+        if lines:
+            rounds.append(lines)
+
+    session.node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    try:
+        if not session.spin_until(lambda: bool(rounds), timeout):
+            print(
+                f"jointfit status: no /diagnostics from {node} within {timeout:g} s (is the node running, with "
+                f"the same ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?)",
+                file=sys.stderr,
+            )
+            return 1
+        while True:
+            while rounds:
+                lines = rounds.pop(0)
+                if clear:
+                    print("\x1b[H\x1b[J", end="")
+                elif not opts.once:
+                    print(f"-- {node} {time.strftime('%H:%M:%S')}")
+                print("\n".join(lines), flush=True)
+                if opts.once:
+                    return 0
+            session.spin_until(lambda: bool(rounds), None)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        session.close()
+
+
+SERVICES = {"reset": "Trigger", "freeze": "SetBool", "save": "Trigger"}
+
+
+def _call_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="jointfit call",
+        description="Call a running jointfit node's service and print its answer: reset (forget every joint's "
+        "window and estimate), freeze true|false (fix or resume the estimates; default true), save (write the "
+        "calibration files).",
+    )
+    p.add_argument("service", choices=sorted(SERVICES), help="the service (<node>/reset, /freeze, /save)")
+    p.add_argument("value", nargs="?", choices=("true", "false"), help="freeze only: true (default) or false")
+    _add_node(p)
+    p.add_argument("--timeout", type=_positive, default=5.0, help="seconds to wait for the service and its answer (default 5)")
+    return p
+
+
+def call_main(argv: Sequence[str]) -> int:
+    """``jointfit call``; returns the exit status."""
+    parser = _call_parser()
+    opts = parser.parse_args(list(argv))
+    if opts.value is not None and opts.service != "freeze":
+        parser.error(f"{opts.service} takes no value (only freeze takes true or false)")
+    from std_srvs.srv import SetBool, Trigger
+
+    name = f"{node_path(opts.node)}/{opts.service}"
+    srv_type: Any = SetBool if opts.service == "freeze" else Trigger
+    request = srv_type.Request()
+    if opts.service == "freeze":
+        request.data = opts.value != "false"
+    session = _Session()
+    try:
+        client = session.node.create_client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=opts.timeout):
+            print(
+                f"jointfit call: no service {name} within {opts.timeout:g} s (is the node running, with the same "
+                f"ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?)",
+                file=sys.stderr,
+            )
+            return 1
+        future = client.call_async(request)
+        if not session.spin_until(future.done, opts.timeout):
+            print(f"jointfit call: {name} did not answer within {opts.timeout:g} s", file=sys.stderr)
+            return 1
+        response = future.result()
+        print(response.message)
+        return 0 if response.success else 1
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        session.close()
