@@ -358,6 +358,15 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         maximum=1e3,
     ),
     ParamSpec(
+        "attachment",
+        "string",
+        "skin",
+        "How both segments' markers are attached: skin (markers or clusters on the skin: the covariance adds a "
+        "soft-tissue-artefact part that does not shrink with the window) or rigid (markers on rigid bodies, "
+        "robots, bone pins, rigid-body pose inputs, the fake mocap).",
+        choices=("skin", "rigid"),
+    ),
+    ParamSpec(
         "calibration_file",
         "string",
         "",
@@ -434,6 +443,7 @@ class JointConfig:
     axis_from_marker: str = ""
     publish_unidentified: bool = False
     freeze_unidentified: bool = False
+    attachment: str = "skin"
 
     def segment_names(self) -> tuple[str, str]:
         """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
@@ -640,6 +650,7 @@ def _joint_config(
         axis_from_marker=from_marker,
         publish_unidentified=v["publish_unidentified"],
         freeze_unidentified=v["freeze_unidentified"],
+        attachment=v["attachment"],
     )
 
 
