@@ -690,9 +690,10 @@ def solve_window(request: SolveRequest) -> SolveResult:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
     smooth = 0.0
     if lag.n_pairs > 0:
-        # The lag-1 sum of white noise is 0 on average with sd ~ RSS / sqrt(3 n): two of those are not smooth.
+        # The lag-1 sum of white noise is 0 on average with sd at most RSS / sqrt(n) (a residual along one
+        # direction): three of those are not smooth (on skin markers the lag-1 sum is ~RSS, 0.95-0.998).
         ss = residual_sum_squares_from_sums(sums, c_p, c_c)
-        lag_sum = residual_lag_sum_from_sums(lag, c_p, c_c) - 2.0 * ss / math.sqrt(3.0 * lag.n_pairs)
+        lag_sum = residual_lag_sum_from_sums(lag, c_p, c_c) - 3.0 * ss / math.sqrt(lag.n_pairs)
         smooth = max(lag_sum, 0.0) * float(sums.n) / lag.n_pairs
     art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth)
     total = _with_artefact(sol, art.cov)
