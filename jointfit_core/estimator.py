@@ -23,6 +23,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .artefact import check_attachment
+from .artefact_sums import (
+    N_FEATURE_SUMS,
+    SumsArtefact,
+    artefact_from_sums,
+    ball_parameters,
+    feature_sums,
+    hinge_parameters,
+)
 from .calibration import fit_from_dict, fit_to_dict
 from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
@@ -44,6 +53,8 @@ from .serial import (
     SerialInflation,
     hinge_residual_pair,
     lag1_autocorrelation_from_sums,
+    residual_lag_sum_from_sums,
+    residual_sum_squares_from_sums,
     serial_factor,
 )
 from .stats import SlidingSums, WindowSpec, window_spec
@@ -98,7 +109,9 @@ _ZZ = slice(13, 157)
 _W = slice(157, 229)
 _SS = 229
 _LAG = 233
-_N_SUMS = _LAG + 29
+#: Then the soft-tissue feature sums (:func:`~jointfit_core.artefact_sums.feature_sums`; zero for rigid markers).
+_FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
+_N_SUMS = _FS.stop
 
 
 def _gather_indices() -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
@@ -586,6 +599,11 @@ class SolveRequest:
         Whether the covariances take the serial-correlation factor.
     generation, version : int
         The estimator's state the request was made in (:meth:`OnlineJoint.install` drops stale results).
+    attachment : (str, str)
+        ``"skin"`` or ``"rigid"`` for the parent and the child: skin adds the
+        soft-tissue part (:func:`~jointfit_core.artefact_sums.artefact_from_sums`).
+    radii : (float, float)
+        The two templates' rms radii, input units.
     """
 
     kind: str
@@ -596,6 +614,8 @@ class SolveRequest:
     serial_correlation: bool
     generation: int
     version: int
+    attachment: tuple[str, str] = ("rigid", "rigid")
+    radii: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -612,6 +632,12 @@ class SolveResult:
         The marker noise (parent, child) used, input units.
     generation, version : int
         The request's.
+    statistical : PoseSumsCentre or PoseSumsAxis or None
+        Skin markers: the estimate with the statistical covariances only
+        (white noise and serial correlation; ``solution`` has them plus the
+        soft-tissue part); None for rigid markers (``solution`` is that).
+    artefact_scale : float
+        The soft-tissue prior's estimated scale (input units per radian; 0 for rigid).
     """
 
     solution: PoseSumsCentre | PoseSumsAxis
@@ -619,6 +645,8 @@ class SolveResult:
     noise_std: tuple[float, float]
     generation: int
     version: int
+    statistical: PoseSumsCentre | PoseSumsAxis | None = None
+    artefact_scale: float = 0.0
 
 
 def solve_window(request: SolveRequest) -> SolveResult:
@@ -660,7 +688,7 @@ def solve_window(request: SolveRequest) -> SolveResult:
     else:
         sol = axis_from_pose_sums(sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction)
         c_p, c_c = hinge_residual_pair(sums, sol.direction_parent, sol.direction_child, sol.point_parent, sol.point_child)
-    lag = LagSums.from_vector(request.sums[_LAG:])
+    lag = LagSums.from_vector(request.sums[_LAG : _LAG + 29])
     rho_raw = lag1_autocorrelation_from_sums(sums, lag, c_p, c_c)
     rho, factor = serial_factor(rho_raw)
     if not request.serial_correlation:
@@ -668,7 +696,54 @@ def solve_window(request: SolveRequest) -> SolveResult:
     if factor != 1.0:
         sol = _inflated(sol, factor, rho, scale)
     serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs)
-    return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
+    if "skin" not in request.attachment:
+        return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
+    smooth = 0.0
+    if lag.n_pairs > 0:
+        # The lag-1 sum of white noise is 0 on average with sd at most RSS / sqrt(n) (a residual along one
+        # direction): three of those are not smooth (on skin markers the lag-1 sum is ~RSS, 0.95-0.998).
+        ss = residual_sum_squares_from_sums(sums, c_p, c_c)
+        lag_sum = residual_lag_sum_from_sums(lag, c_p, c_c) - 3.0 * ss / math.sqrt(lag.n_pairs)
+        smooth = max(lag_sum, 0.0) * float(sums.n) / lag.n_pairs
+    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth)
+    total = _with_artefact(sol, art.cov)
+    return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
+
+
+def _sums_artefact(
+    request: SolveRequest,
+    sums: PoseSums,
+    sol: PoseSumsCentre | PoseSumsAxis,
+    centres: tuple[FloatArray, FloatArray],
+    smooth: float,
+) -> SumsArtefact:
+    """The soft-tissue covariance of a window's estimate (skin segments weighted equally)."""
+    n = float(sums.n)
+    S, st, sqt = np.asarray(sums.S), np.asarray(sums.sum_t), np.asarray(sums.sum_qt_t)
+    weights = (float(request.attachment[0] == "skin"), float(request.attachment[1] == "skin"))
+    if isinstance(sol, PoseSumsCentre):
+        def solver(x: FloatArray) -> FloatArray:
+            return ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:])
+    else:
+        ref = sol.direction_parent.copy()
+
+        def solver(x: FloatArray) -> FloatArray:
+            return hinge_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:], ref)
+    return artefact_from_sums(request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth)
+
+
+def _with_artefact(sol: PoseSumsCentre | PoseSumsAxis, cov: FloatArray) -> PoseSumsCentre | PoseSumsAxis:
+    """The estimate with the soft-tissue covariance added (ball: over ``(c_p, c_c)``; hinge: directions, points)."""
+    if isinstance(sol, PoseSumsCentre):
+        total = sol.cov + cov
+        return replace(sol, cov=total, cov_parent=total[:3, :3], cov_child=total[3:, 3:])
+    return replace(
+        sol,
+        cov_direction_parent=sol.cov_direction_parent + cov[:3, :3],
+        cov_direction_child=sol.cov_direction_child + cov[3:6, 3:6],
+        cov_point_parent=sol.cov_point_parent + cov[6:9, 6:9],
+        cov_point_child=sol.cov_point_child + cov[9:, 9:],
+    )
 
 
 # --------------------------------------------------------------------------- the estimator
@@ -847,6 +922,7 @@ class OnlineJoint:
         noise_std: tuple[float | None, float | None] | None = None,
         serial_correlation: bool = True,
         gate: float = 5.0,
+        attachment: str | tuple[str, str] = "rigid",
     ) -> None:
         if kind not in _KINDS:
             raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
@@ -904,6 +980,9 @@ class OnlineJoint:
         ):
             raise InputError(f"gate: expected a number >= 0 (0: off), got {gate!r}")
         self.gate = float(gate)
+        #: ``("skin" | "rigid", "skin" | "rigid")``: how the parent's and the child's markers are attached.
+        self.attachment: tuple[str, str] = check_attachment(attachment)
+        self._skin = "skin" in self.attachment
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
         self.gate_log: list[tuple[int, int, float]] | None = None
@@ -942,6 +1021,8 @@ class OnlineJoint:
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
         self._serial: SerialInflation | None = None
+        self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
+        self._artefact_scale = 0.0
         # The outlier gate's turn test, per segment: the reference rotation (the segment's
         # last pose that passed the gate, carried along through the frames held out since),
         # whether there is one, the number of the frame that set it (frames are numbered as
@@ -1500,7 +1581,8 @@ class OnlineJoint:
             total[_LAG] = wp.sum()
             total[_LAG + 1 : _LAG + 13] = wp @ (z + z_prev).reshape(m, 12)
             cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
-            total[_LAG + 13 :] = cross.ravel()
+            total[_LAG + 13 : _LAG + 29] = cross.ravel()
+            total[_FS] = w @ feature_sums(z[:, :, :3], z[:, :, 3]) if self._skin else 0.0
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
             pr = np.flatnonzero(paired)
@@ -1514,7 +1596,9 @@ class OnlineJoint:
             c[:, _LAG:] = 0.0
             c[pr, _LAG] = 1.0
             c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
-            c[pr, _LAG + 13 :] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
+            if self._skin:
+                c[:, _FS] = feature_sums(z[:, :, :3], z[:, :, 3])
+            c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
             self._sums.push_many(c, stamps)
         self._version += 1
         self._z_prev[...] = z[-1]
@@ -1923,13 +2007,15 @@ class OnlineJoint:
             c[_W] = ps.W_flat
             c[_SS : _SS + 4 : 2] = ss
             c[_SS + 1 : _SS + 4 : 2] = ps.dof
+            if self._skin:
+                c[_FS] = feature_sums(z[None, :, :3], z[None, :, 3])[0]
             # The lag pair (previous frame in the statistics, this one), stored with this frame.
             if self._prev_in:
                 c[_LAG] = 1.0
                 np.add(z, self._z_prev, out=self._pair_view)
                 np.matmul(z.T, self._z_prev, out=self._cross_view)
             elif c[_LAG] != 0.0:
-                c[_LAG:] = 0.0
+                c[_LAG : _LAG + 29] = 0.0
             if self._sums is None:
                 self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
             self._sums.push(c, stamp)
@@ -1977,7 +2063,7 @@ class OnlineJoint:
         InputError
             No frame has entered the statistics yet.
         """
-        return LagSums.from_vector(self._entered_sums()[_LAG:])
+        return LagSums.from_vector(self._entered_sums()[_LAG : _LAG + 29])
 
     def _entered_sums(self) -> FloatArray:
         """The window's sums vector; InputError when no frame has entered the statistics yet."""
@@ -1993,6 +2079,20 @@ class OnlineJoint:
         calibration saved without it.
         """
         return self._serial
+
+    @property
+    def statistical_solution(self) -> PoseSumsCentre | PoseSumsAxis | None:
+        """Skin markers: the latest estimate with its statistical covariances only (without the soft-tissue part).
+
+        None for rigid markers (:meth:`estimate`'s covariances are then the
+        statistical ones), before the first estimate and after :meth:`from_dict`.
+        """
+        return self._statistical
+
+    @property
+    def artefact_scale(self) -> float:
+        """The soft-tissue prior's scale at the latest estimate (input units per radian; 0 for rigid markers)."""
+        return self._artefact_scale
 
     def estimate(self) -> PoseSumsCentre | PoseSumsAxis:
         """Solve the window's sums (or return the frozen or still current estimate).
@@ -2045,7 +2145,15 @@ class OnlineJoint:
             serial_correlation=self.serial_correlation,
             generation=self._generation,
             version=self._version,
+            attachment=self.attachment,
+            radii=self._radii(),
         )
+
+    def _radii(self) -> tuple[float, float]:
+        if not self.templates_ready:
+            return (0.0, 0.0)
+        assert self._parent is not None and self._child is not None
+        return (self._parent.rms_radius, self._child.rms_radius)
 
     def is_current(self, request: SolveRequest) -> bool:
         """Whether a :meth:`solve_request` was made in the state the estimator is in now.
@@ -2073,6 +2181,8 @@ class OnlineJoint:
         self._solution = result.solution
         self._sigma = result.noise_std
         self._serial = result.serial
+        self._statistical = result.statistical
+        self._artefact_scale = result.artefact_scale
         self._solved_version = result.version
         self._world_cache = {}
         self._joint.arm(self._solution, self.length_scale)
@@ -2167,6 +2277,8 @@ class OnlineJoint:
             "serial_correlation": self.serial_correlation,
             "gate": self.gate,
             "serial_inflation": None if self._serial is None else _serial_to_dict(self._serial),
+            "attachment": list(self.attachment),
+            "artefact_scale": self._artefact_scale,
             "estimate": fit,
         }
 
@@ -2206,6 +2318,7 @@ class OnlineJoint:
                 ),
                 serial_correlation=data.get("serial_correlation", True),  # absent before it existed
                 gate=float(data.get("gate", 5.0)),
+                attachment=tuple(data.get("attachment", ("rigid", "rigid"))),  # absent before it existed
             )
             tp = np.array(data["template_parent"], dtype=np.float64)
             tc = np.array(data["template_child"], dtype=np.float64)

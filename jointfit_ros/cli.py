@@ -157,9 +157,14 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
     if "centre_parent" in joint:
         est = "centre_parent (" + ", ".join(f"{v:.4g}" for v in joint["centre_parent"]) + ")"
         est += f" sd <= {max(joint['sd_parent']):.2g} {unit}"
+        if "sd_parent_statistical" in joint:
+            est += f" (statistical {max(joint['sd_parent_statistical']):.2g}, the rest soft-tissue artefact)"
     else:
         est = "direction_parent (" + ", ".join(f"{v:.3f}" for v in joint["direction_parent"]) + ")"
-        est += f" sd {joint['direction_sd_deg_parent']:.2g} deg, pointing {joint['axis_points']}"
+        est += f" sd {joint['direction_sd_deg_parent']:.2g} deg"
+        if "direction_sd_deg_parent_statistical" in joint:
+            est += f" (statistical {joint['direction_sd_deg_parent_statistical']:.2g})"
+        est += f", pointing {joint['axis_points']}"
     verdict = "" if joint["identifiable"] else f"; NOT identifiable: {joint['reason']}"
     if joint.get("gate_warning"):
         verdict += f"; WARNING: {joint['gate_warning']}"

@@ -386,6 +386,15 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         maximum=1e3,
     ),
     ParamSpec(
+        "attachment",
+        "string",
+        "skin",
+        "How both segments' markers are attached: skin (markers or clusters on the skin: the covariance adds a "
+        "soft-tissue-artefact part that does not shrink with the window) or rigid (markers on rigid bodies, "
+        "robots, bone pins, rigid-body pose inputs, the fake mocap).",
+        choices=("skin", "rigid"),
+    ),
+    ParamSpec(
         "calibration_file",
         "string",
         "",
@@ -488,14 +497,15 @@ class JointConfig:
     publish_unidentified: bool = False
     freeze_unidentified: bool = False
     anatomical: tuple[tuple[str, str], ...] = ()
+    target_sd: float = 0.0
+    auto_freeze: bool = False
+    attachment: str = "skin"
 
     def landmarks(self, group: str) -> dict[str, str] | None:
         """The markers of a landmark group of :data:`ANATOMICAL_GROUPS` by role, or None when not configured."""
         given = dict(self.anatomical)
         roles = ANATOMICAL_GROUPS[group]
         return {r: given[r] for r in roles} if all(r in given for r in roles) else None
-    target_sd: float = 0.0
-    auto_freeze: bool = False
 
     def segment_names(self) -> tuple[str, str]:
         """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
@@ -708,6 +718,7 @@ def _joint_config(
         anatomical=anatomical,
         target_sd=v["target_sd"],
         auto_freeze=v["auto_freeze"],
+        attachment=v["attachment"],
     )
 
 

@@ -242,6 +242,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
         out["direction_sd_deg_child"] = _angle_sd_deg(sol.cov_direction_child)
         out["point_child"] = _list(sol.point_child)
         out["point_sd_child"] = _sd(sol.cov_point_child)
+    out.update(_artefact_summary(est, sol))
     geo = _geometry(run, trace, geos)
     if geo is not None:
         rms: dict[str, float | None] = {}
@@ -260,6 +261,25 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
 def length_unit(run: FitRun) -> str:
     """The length unit of a run's numbers: the file's (C3D, TRC), else the configured ``units`` (bags)."""
     return run.units or run.cfg.units
+
+
+def _artefact_summary(est: Any, sol: PoseSumsCentre | PoseSumsAxis) -> dict[str, Any]:
+    """``attachment`` and, for skin markers, the statistical part of each sd beside the total (with-artefact) one."""
+    out: dict[str, Any] = {"attachment": list(est.attachment)}
+    stat = est.statistical_solution
+    if stat is None:
+        return out
+    out["artefact_scale_per_rad"] = float(est.artefact_scale)
+    if isinstance(stat, PoseSumsCentre):
+        out["sd_parent_statistical"] = _sd(stat.cov_parent)
+        out["cov_parent_statistical"] = _list(stat.cov_parent)
+        out["sd_child_statistical"] = _sd(stat.cov_child)
+    elif isinstance(stat, PoseSumsAxis):
+        out["direction_sd_deg_parent_statistical"] = _angle_sd_deg(stat.cov_direction_parent)
+        out["point_sd_parent_statistical"] = _sd(stat.cov_point_parent)
+        out["direction_sd_deg_child_statistical"] = _angle_sd_deg(stat.cov_direction_child)
+        out["point_sd_child_statistical"] = _sd(stat.cov_point_child)
+    return out
 
 
 def gated_share(r: JointRunner) -> dict[str, dict[str, float]]:
@@ -690,6 +710,11 @@ def _headline(trace: JointTrace, unit: str) -> str:
     else:
         d = sol.direction_parent
         est = "axis direction (parent frame) = (" + ", ".join(f"{v:.3f}" for v in d) + f") +- {_angle_sd_deg(sol.cov_direction_parent):.2g} deg"
+    stat = r.estimator.statistical_solution
+    if isinstance(stat, PoseSumsCentre):
+        est += " (statistical +- (" + ", ".join(f"{v:.2g}" for v in _sd(stat.cov_parent)) + "); skin: with artefact)"
+    elif isinstance(stat, PoseSumsAxis):
+        est += f" (statistical {_angle_sd_deg(stat.cov_direction_parent):.2g} deg; skin: with artefact)"
     return f"{head}: {est}\n{frames}; {verdict}"
 
 

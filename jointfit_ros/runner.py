@@ -163,12 +163,36 @@ def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
     """The window and estimator settings of a calibration file that differ from the configuration, in words."""
     wanted = {"window": None, "window_s": None, "half_life_s": None, **cfg.window_kwargs()}
     configured = {**wanted, "template_frames": cfg.template_frames, "gate": cfg.outlier_gate}
+    if "attachment" in data:  # saved since the soft-tissue part exists
+        configured["attachment"] = [cfg.attachment, cfg.attachment]
     notes = []
     for key, value in configured.items():
         saved = data.get(key)
         if saved != value and not (saved is None and value in (None, 0.0)):
             notes.append(f"the calibration's {key} is {saved!r}, the configuration's {value!r}: the file's is used")
     return notes
+
+
+def _largest_sd(cov: FloatArray) -> float:
+    return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
+
+
+def _artefact_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: str) -> dict[str, Any]:
+    """The statistical and with-artefact parts of the estimate's sd, for /diagnostics (keys with units ``u``)."""
+    values: dict[str, Any] = {"attachment": "/".join(est.attachment)}
+    stat = est.statistical_solution
+    if stat is None:
+        return values
+    values[f"artefact scale ({u}/rad)"] = est.artefact_scale
+    if isinstance(sol, PoseSumsCentre) and isinstance(stat, PoseSumsCentre):
+        values[f"statistical sd ({u})"] = _largest_sd(stat.cov_parent)
+        values[f"with-artefact sd ({u})"] = _largest_sd(sol.cov_parent)
+    elif isinstance(sol, PoseSumsAxis) and isinstance(stat, PoseSumsAxis):
+        values["statistical direction sd (deg)"] = round(direction_sd_deg(stat.cov_direction_parent), 3)
+        values["with-artefact direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
+        values[f"statistical point sd ({u})"] = _largest_sd(stat.cov_point_parent)
+        values[f"with-artefact point sd ({u})"] = _largest_sd(sol.cov_point_parent)
+    return values
 
 
 def _spread_deg(deficit: float) -> float:
@@ -240,6 +264,7 @@ class JointRunner:
             self.cfg.type,
             template_frames=self.cfg.template_frames,
             gate=self.cfg.outlier_gate,
+            attachment=self.cfg.attachment,
             templates=self._template_args,
             noise_std=self._noise_args,
             # 4 virtual markers for poses; chain joints add one point each
@@ -807,6 +832,7 @@ class JointRunner:
             values["direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
             values[f"point sd ({u})"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
         values.update(coverage_values(est, sol)[1])
+        values.update(_artefact_values(est, sol, u))
         if self.cfg.target_sd > 0.0:
             values[f"target sd ({u if isinstance(sol, PoseSumsCentre) else 'deg'})"] = self.cfg.target_sd
         gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names(), est.joint_gated_frames)

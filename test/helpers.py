@@ -77,6 +77,9 @@ def fake_rig_values(**extra: Any) -> dict[str, Any]:
         "knee.parent_markers": ["FEMUR1", "FEMUR2", "FEMUR3", "FEMUR4"],
         "knee.child_markers": ["SHANK1", "SHANK2", "SHANK3", "SHANK4"],
         "knee.template_frames": 20,
+        # the fake mocap's clusters are rigid (the node's default is skin)
+        "hip.attachment": "rigid",
+        "knee.attachment": "rigid",
     }
     values.update(extra)
     return values

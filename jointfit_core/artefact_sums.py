@@ -1,0 +1,274 @@
+"""Soft-tissue artefact (STA) covariance of the online estimates, from running sums.
+
+The batch fits (:mod:`jointfit_core.artefact`) propagate a prior on each
+skin cluster's rigid motion on its bone through every frame. The online
+estimator keeps only sums, so this module keeps the few extra sums that the
+same propagation needs and does it on them:
+
+- per frame, the features ``f_t`` of the joint angles (rotation vector of the
+  relative rotation ``Q_t``, its squares and cross products: the linear plus
+  quadratic artefact model of Camomilla et al. 2013 and Bonci et al. 2014)
+  and their products with the relative pose: ``sum f``, ``sum Q (x) f``,
+  ``sum t (x) f``, ``sum (Q^T t) (x) f`` and ``sum |f|^2``
+  (:func:`feature_sums`, :data:`N_FEATURE_SUMS` numbers, exactly additive);
+- per solve, the first-order change of the estimate when each cluster moves
+  on its bone by ``g_t = G f_t`` (``G`` 12 x 9 with independent entries of
+  variance ``s^2 v_j``, :func:`artefact_from_sums`). The features are centred
+  over the window, so a constant offset (which only relabels the joint) is
+  not part of the artefact. The propagated covariance does not shrink with
+  the window: ``sum_t Q_t f_t`` grows like N, and so does the normal matrix.
+
+The prior's overall scale ``s`` is read from the data: the smooth part of
+the joint residual (its lag-1 autocovariance, to which white marker noise
+contributes nothing) is the visible part of the same cluster motion, whose
+expected size per unit prior is known from the geometry and the movement.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .pose import skew
+
+__all__ = [
+    "N_FEATURE_SUMS",
+    "SumsArtefact",
+    "artefact_from_sums",
+    "ball_parameters",
+    "feature_sums",
+    "hinge_parameters",
+    "rotation_features",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Number of joint-angle features (rotation vector, squares, cross products).
+N_FEATURES = 9
+#: Layout of :func:`feature_sums`: f (9), Q_ij f_k (81), t_i f_k (27), (Q^T t)_i f_k (27), |f|^2 (1).
+_F = slice(0, 9)
+_QF = slice(9, 90)
+_TF = slice(90, 117)
+_PF = slice(117, 144)
+_FF = 144
+N_FEATURE_SUMS = 145
+#: Relative step of the finite differences of the solvers.
+_STEP = 1e-6
+
+
+def rotation_features(Q: FloatArray) -> FloatArray:
+    """Linear and quadratic joint-angle features of relative rotations, (N, 3, 3) -> (N, 9).
+
+    ``q`` is the rotation vector of ``Q`` (rad, from the template frame's
+    relative orientation); the features are ``q``, ``q**2`` and
+    ``q0 q1, q0 q2, q1 q2``, not centred (the sums are centred per window).
+    """
+    tr = np.clip((np.trace(Q, axis1=1, axis2=2) - 1.0) * 0.5, -1.0, 1.0)
+    theta = np.arccos(tr)
+    w = 0.5 * np.stack([Q[:, 2, 1] - Q[:, 1, 2], Q[:, 0, 2] - Q[:, 2, 0], Q[:, 1, 0] - Q[:, 0, 1]], axis=1)
+    sin = np.sin(theta)
+    ratio = np.where(sin > 1e-9, theta / np.maximum(sin, 1e-9), 1.0)
+    q = w * ratio[:, None]
+    out: FloatArray = np.concatenate([q, q * q, q[:, [0]] * q[:, [1]], q[:, [0]] * q[:, [2]], q[:, [1]] * q[:, [2]]], 1)
+    return out
+
+
+def feature_sums(Q: FloatArray, t: FloatArray) -> FloatArray:
+    """Per-frame contributions (N, :data:`N_FEATURE_SUMS`) of relative poses ``Q`` (N, 3, 3), ``t`` (N, 3)."""
+    f = rotation_features(Q)
+    n = f.shape[0]
+    out = np.empty((n, N_FEATURE_SUMS))
+    out[:, _F] = f
+    out[:, _QF] = (Q.reshape(n, 9, 1) * f[:, None, :]).reshape(n, 81)
+    out[:, _TF] = (t[:, :, None] * f[:, None, :]).reshape(n, 27)
+    qt = np.einsum("nji,nj->ni", Q, t)
+    out[:, _PF] = (qt[:, :, None] * f[:, None, :]).reshape(n, 27)
+    out[:, _FF] = np.einsum("nk,nk->n", f, f)
+    return out
+
+
+def ball_parameters(n: float, S: FloatArray, sum_t: FloatArray, sum_qt: FloatArray) -> FloatArray:
+    """``(c_p, c_c)`` (6,) of Stoddart's eq. 9 from the sums (no bias compensation)."""
+    A = np.block([[n * np.eye(3), -S], [-S.T, n * np.eye(3)]])
+    out: FloatArray = np.linalg.solve(A, np.concatenate([sum_t, -sum_qt]))
+    return out
+
+
+def hinge_parameters(
+    n: float, S: FloatArray, sum_t: FloatArray, sum_qt: FloatArray, reference: FloatArray
+) -> FloatArray:
+    """``(n_p, n_c, point_p, point_c)`` (12,) of the hinge closed form from the sums.
+
+    As :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`: the top
+    singular pair of ``S`` (signed so that ``n_p . reference >= 0``) and the
+    pseudo-inverse solution of eq. 9 without the gauge direction, each point
+    moved to the axis point nearest its local origin.
+    """
+    U, s, Vt = np.linalg.svd(S)
+    V = Vt.T
+    flip = 1.0 if U[:, 0] @ reference >= 0.0 else -1.0
+    E, lam = [], []
+    for k in range(3):
+        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
+            if k == 0 and sign > 0:
+                continue
+            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
+            lam.append(value)
+    Em = np.stack(E, axis=1)
+    a = (Em / np.asarray(lam)) @ (Em.T @ np.concatenate([sum_t, -sum_qt]))
+    n_p, n_c = flip * U[:, 0], flip * V[:, 0]
+    out: FloatArray = np.concatenate([n_p, n_c, a[:3] - n_p * (n_p @ a[:3]), a[3:] - n_c * (n_c @ a[3:])])
+    return out
+
+
+@dataclass(frozen=True)
+class SumsArtefact:
+    """The soft-tissue part of an online estimate's covariance.
+
+    Attributes
+    ----------
+    cov : ndarray, shape (m, m)
+        Over the solver's parameter vector (ball: ``c_p, c_c``, input units
+        squared; hinge: ``n_p, n_c, point_p, point_c``).
+    scale : float
+        Estimated rms cluster shift on the bone per radian of joint rotation
+        (input units per rad; 0 when the residual shows no smooth part).
+    """
+
+    cov: FloatArray
+    scale: float
+
+
+def _centred(fs: FloatArray, n: float, S: FloatArray, sum_t: FloatArray, sum_qt: FloatArray) -> tuple[FloatArray, ...]:
+    """Window-centred ``sum Q f_k`` (9, 3, 3), ``sum t f_k``, ``sum Q^T t f_k`` (9, 3) and ``sum |f - fbar|^2``."""
+    fbar = fs[_F] / n
+    SQ = fs[_QF].reshape(3, 3, 9).transpose(2, 0, 1) - fbar[:, None, None] * S[None]
+    ST = fs[_TF].reshape(3, 9).T - fbar[:, None] * sum_t[None]
+    SP = fs[_PF].reshape(3, 9).T - fbar[:, None] * sum_qt[None]
+    ff = max(float(fs[_FF]) - n * float(fbar @ fbar), 0.0)
+    return SQ, ST, SP, np.array(ff)
+
+
+def _sum_perturbations(SQ: FloatArray, ST: FloatArray, SP: FloatArray) -> FloatArray:
+    """Change of ``(S, sum t, sum Q^T t)`` (15,) per unit entry of ``G``: (15, 12, 9).
+
+    A cluster motion ``(omega_p, u_p, omega_c, u_c)`` about the local origins
+    changes the relative pose by ``dQ = -[omega_p]x Q + Q [omega_c]x``,
+    ``dt = Q u_c - u_p - [omega_p]x t`` and ``d(Q^T t) = -[omega_c]x Q^T t +
+    u_c - Q^T u_p`` (first order); with ``g_t = G f_t`` and centred features
+    the window's sums change by the centred products below.
+    """
+    out = np.zeros((15, 12, 9))
+    basis = np.eye(3)
+    for j in range(3):
+        e = skew(basis[j])
+        # omega_p (columns 0-2)
+        out[:9, j] = (-(e[None] @ SQ)).reshape(9, 9).T
+        out[9:12, j] = -(ST @ e.T).T
+        # u_p (3-5): dS 0, dsum_t 0 (centred), dsum_qt = -S_k^T e_j
+        out[12:15, 3 + j] = -SQ[:, j, :].T
+        # omega_c (6-8)
+        out[:9, 6 + j] = (SQ @ e[None]).reshape(9, 9).T
+        out[12:15, 6 + j] = -(SP @ e.T).T
+        # u_c (9-11): dsum_t = S_k e_j
+        out[9:12, 9 + j] = SQ[:, :, j].T
+    return out
+
+
+def _jacobian(solver: Callable[[FloatArray], FloatArray], x0: FloatArray, scales: FloatArray) -> FloatArray:
+    """Central finite-difference Jacobian (m, 15) of ``solver`` at ``x0`` with per-entry steps."""
+    cols = []
+    for i in range(x0.size):
+        h = _STEP * scales[i]
+        xp, xm = x0.copy(), x0.copy()
+        xp[i] += h
+        xm[i] -= h
+        cols.append((solver(xp) - solver(xm)) / (2.0 * h))
+    return np.stack(cols, axis=1)
+
+
+def artefact_from_sums(
+    fs: FloatArray,
+    n: float,
+    S: FloatArray,
+    sum_t: FloatArray,
+    sum_qt: FloatArray,
+    solver: Callable[[FloatArray], FloatArray],
+    centres: tuple[FloatArray, FloatArray],
+    radii: tuple[float, float],
+    weights: tuple[float, float],
+    smooth_energy: float,
+) -> SumsArtefact:
+    """Soft-tissue covariance of a sums-based estimate (first order in the cluster motion).
+
+    Parameters
+    ----------
+    fs : ndarray, shape (N_FEATURE_SUMS,)
+        The window's :func:`feature_sums`.
+    n : float
+        Frames (or weight) in the window.
+    S, sum_t, sum_qt : ndarray, shapes (3, 3), (3,), (3,)
+        ``sum Q``, ``sum t``, ``sum Q^T t`` of the window.
+    solver : callable
+        ``solver(x) -> params (m,)`` with ``x = (S.ravel(), sum_t, sum_qt)``
+        (15,): the estimate as a function of those sums.
+    centres : (ndarray (3,), ndarray (3,))
+        The joint's residual pair ``(c_p, c_c)`` in the local frames (input units).
+    radii : (float, float)
+        Rms radii of the two templates (input units): a cluster turn and a
+        shift of the prior's size move the markers alike (``v = 1 / r^2`` for
+        rotations, 1 for translations, as in :mod:`jointfit_core.artefact`).
+    weights : (float, float)
+        Relative artefact size of the parent and the child (0: rigid).
+    smooth_energy : float
+        ``n / n_pairs sum_pairs r_k . r_{k-1}`` of the joint residual at
+        ``centres`` (input units squared): its smooth part.
+
+    Returns
+    -------
+    SumsArtefact
+
+    Notes
+    -----
+    ``d params = J_x dx``, ``dx = sum_jk Delta_jk G_jk`` (:func:`_sum_perturbations`),
+    so ``cov = s^2 J_x (sum_jk v_j Delta_jk Delta_jk^T) J_x^T``. Per unit
+    ``s^2`` the residual ``r_t = c_p - Q_t c_c - t_t`` gains ``D_t g_t`` (the
+    Jacobian of the batch fits) minus what the refit absorbs, so its
+    expected sum of squares is ``sum_j v_j |D e_j|^2 sum_t |f_t - fbar|^2 -
+    sum_jk v_j da_jk^T A da_jk`` (``A`` the normal matrix of eq. 9, ``da``
+    the change of the centre pair); ``s^2`` is the residual's smooth energy
+    over it.
+    """
+    m = solver(np.concatenate([S.ravel(), sum_t, sum_qt])).size
+    zero = SumsArtefact(np.zeros((m, m)), 0.0)
+    w = np.asarray(weights, dtype=np.float64)
+    if n < 3 or float(w.sum()) <= 0.0:
+        return zero
+    SQ, ST, SP, ff = _centred(fs, n, S, sum_t, sum_qt)
+    delta = _sum_perturbations(SQ, ST, SP).reshape(15, 108)
+    v = np.concatenate([np.full(3, 1.0 / max(radii[0] ** 2, 1e-300)), np.ones(3)]) * w[0]
+    v = np.concatenate([v, np.concatenate([np.full(3, 1.0 / max(radii[1] ** 2, 1e-300)), np.ones(3)]) * w[1]])
+    vjk = np.repeat(v, 9)
+    x0 = np.concatenate([S.ravel(), sum_t, sum_qt])
+    length = max(float(np.linalg.norm(sum_t)) / n, float(np.linalg.norm(sum_qt)) / n, max(radii), 1e-300)
+    steps = np.concatenate([np.full(9, n), np.full(6, n * length)])
+    Jx = _jacobian(solver, x0, steps)
+    dparams = Jx @ delta  # (m, 108)
+    cov_unit = (dparams * vjk) @ dparams.T
+    # visible residual energy per unit s^2 (ball normal matrix, centre pair from eq. 9)
+    Jc = _jacobian(lambda x: ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:]), x0, steps)
+    da = Jc @ delta
+    A = np.block([[n * np.eye(3), -S], [-S.T, n * np.eye(3)]])
+    c_p, c_c = centres
+    direct = w[0] * (2.0 * float(c_p @ c_p) / max(radii[0] ** 2, 1e-300) + 3.0)
+    direct += w[1] * (2.0 * float(c_c @ c_c) / max(radii[1] ** 2, 1e-300) + 3.0)
+    absorbed = float(np.einsum("ik,ij,jk,k->", da, A, da, vjk))
+    visible = direct * float(ff) - absorbed
+    if not (visible > 0.0 and np.isfinite(smooth_energy) and smooth_energy > 0.0):
+        return zero
+    scale2 = smooth_energy / visible
+    cov = scale2 * 0.5 * (cov_unit + cov_unit.T)
+    return SumsArtefact(cov, float(np.sqrt(scale2 * float(w.max()))))
