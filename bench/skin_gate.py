@@ -32,10 +32,13 @@ without corruption; and how far the corruption moved the hinge direction from th
 trial's (gate on; the same templates: the corruption starts after them), with the gate and
 without (gate 0), median over trials, with the median reported sd of the gated estimate.
 
-The misses are corruptions that move a 3-marker cluster almost rigidly: a 3-marker cluster
-has 3 numbers of shape (its distances), and a ghost or a pair of jumps that changes them by
-a few mm while turning the cluster by 10-35 deg in one frame looks like motion (the turn
-test holds out more than 30 deg that is no relabelling, and only for swaps).
+Corruptions that move a 3-marker cluster almost rigidly (a 3-marker cluster has 3 numbers of
+shape, its distances; a ghost that moves one marker about the line through the other two turns the
+cluster about that line) pass the segment's shape test; the joint-consistency test
+(:mod:`jointfit_core.joint_gate`) catches them once the joint is identifiable: the hinge axis carried
+by the two segments no longer lines up. A frame it rejects counts as gated for both segments here
+(both are lost to the joint in that frame). The misses left are corruptions before the joint was
+identifiable, or whose effect at the joint is within its normal frame-to-frame change.
 
 Command: ``PYTHONPATH=. python bench/skin_gate.py`` (writes the command into the results).
 """
