@@ -39,13 +39,19 @@ def _spread(geo: SegmentGeometry, markers: dict[str, str], scale: float) -> dict
     return {m: round(geo.landmarks_parent[m][1] * scale, 2) for m in markers.values()}
 
 
-def _pelvis(cfg: JointConfig, sol: PoseSumsCentre, geo: SegmentGeometry, unit: str) -> dict[str, Any] | None:
-    roles = cfg.landmarks("pelvis")
-    if roles is None:
-        return None
-    missing = [m for m in roles.values() if m not in geo.landmarks_parent]
+def _landmarks(cfg: JointConfig, group: str, geo: SegmentGeometry) -> tuple[dict[str, str] | None, dict[str, Any] | None]:
+    """A landmark group's markers by role, or None (not configured); and the error when some were never seen."""
+    roles = cfg.landmarks(group)
+    missing = [] if roles is None else [m for m in roles.values() if m not in geo.landmarks_parent]
     if missing:
-        return {"error": f"landmarks {missing} are never visible in a frame where the parent is posed"}
+        return roles, {"error": f"landmarks {missing} are never visible in a frame where the parent is posed"}
+    return roles, None
+
+
+def _pelvis(cfg: JointConfig, sol: PoseSumsCentre, geo: SegmentGeometry, unit: str) -> dict[str, Any] | None:
+    roles, error = _landmarks(cfg, "pelvis", geo)
+    if roles is None or error is not None:
+        return error
     scale = MM_PER_UNIT.get(unit)
     shown = "mm" if scale is not None else unit
     s = scale or 1.0
@@ -72,12 +78,9 @@ def _pelvis(cfg: JointConfig, sol: PoseSumsCentre, geo: SegmentGeometry, unit: s
 
 
 def _epicondyles(cfg: JointConfig, sol: PoseSumsAxis, geo: SegmentGeometry, unit: str) -> dict[str, Any] | None:
-    roles = cfg.landmarks("epicondyles")
-    if roles is None:
-        return None
-    missing = [m for m in roles.values() if m not in geo.landmarks_parent]
-    if missing:
-        return {"error": f"landmarks {missing} are never visible in a frame where the parent is posed"}
+    roles, error = _landmarks(cfg, "epicondyles", geo)
+    if roles is None or error is not None:
+        return error
     scale = MM_PER_UNIT.get(unit)
     s = scale or 1.0
     knee = axis_against_epicondyles(

@@ -216,8 +216,11 @@ def test_real_fixtures_report(
     assert (out / f"{joint}.calibration.yaml").exists() == identifiable
     assert all(v is not None and v > 0 for v in j["marker_residual_rms"].values())
     if joint == "right_knee":
-        # The sign convention of the config: the axis points toward the lateral epicondyle (RLFE).
-        assert j["direction_sd_deg_parent"] < 2.0
+        # Skin markers: the reported sd is the statistical part plus the soft-tissue-artefact part (issue 17).
+        # The statistical part is the closed form's as before (< 2 deg); the total stays below the verdict's
+        # 5 deg limit, and covers the 0.4 deg between jointfit and SARA on this trial (bench/results/peers.md).
+        stat, total = j["direction_sd_deg_parent_statistical"], j["direction_sd_deg_parent"]
+        assert stat < 2.0 and 0.4 < stat <= total < 5.0, (stat, total)
     if joint == "right_elbow":
         assert "not a hinge" in j["reason"] and "NOT identifiable" in stdout
 

@@ -204,7 +204,9 @@ def test_real_hip_converted_and_fitted_without_marker_names(tmp_path: Path) -> N
                      str(tmp_path / "b"), "--no-report"]) == 0
     a, b = _summary(tmp_path / "a")["right_hip"], _summary(tmp_path / "b")["right_hip"]
     _assert_scaled(b, a, 1000.0)
-    assert a["identifiable"] and a["frames_in_window"] == 1690
+    # every frame but those the joint-consistency test rejected (0.5 %: the hip's skin clusters jump at times)
+    assert a["identifiable"] and a["frames_in_window"] == 1690 - a["gated"]["joint"]["frames"] == b["frames_in_window"]
+    assert a["gated"]["joint"]["frames"] < 0.01 * 1690
 
 
 def test_a_label_the_file_lacks_is_one_line(tmp_path: Path, recording: tuple[Path, Any, Any],

@@ -42,6 +42,15 @@ def test_every_parameter_is_described_with_a_valid_default() -> None:
         check_value(spec, spec.default)  # the default passes its own checks
 
 
+def _flat(params: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested keys at any depth (``hip.anatomical.rasis``), as rclpy reads a parameter file."""
+    out: dict[str, Any] = {}
+    for key, value in params.items():
+        name = f"{prefix}.{key}" if prefix else key
+        out.update(_flat(value, name) if isinstance(value, dict) else {name: value})
+    return out
+
+
 def test_example_configs_are_valid() -> None:
     """Every config/*.yaml passes the node's checks (nested keys become <joint>.<name>)."""
     yaml = pytest.importorskip("yaml")
@@ -49,13 +58,7 @@ def test_example_configs_are_valid() -> None:
     assert len(paths) >= 4
     for path in paths:
         params = yaml.safe_load(path.read_text())["jointfit"]["ros__parameters"]
-        flat: dict[str, Any] = {}
-        for key, value in params.items():
-            if isinstance(value, dict):
-                flat.update({f"{key}.{k}": v for k, v in value.items()})
-            else:
-                flat[key] = value
-        cfg = node_config(flat)
+        cfg = node_config(_flat(params))
         assert [j.name for j in cfg.joints] == params["joints"], path
 
 
