@@ -20,6 +20,8 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from geometry_msgs.msg import PoseArray
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from test_node import RATE, _Client, _start_node, _stop
 
 from jointfit_ros.conversions import pose_array_bytes
@@ -45,6 +47,7 @@ def _params(tmp_path: Path) -> Path:
     estimate_period: 0.05
     diagnostics_period: 0.2
     stale_after: 1.0
+    qos_reliability: reliable  # the single bad messages must arrive to be counted (best effort may drop them)
     hip:
       type: ball
       parent_markers: [PELV1, PELV2, PELV3, PELV4]
@@ -84,6 +87,10 @@ def rig(tmp_path: Path) -> Iterator[tuple[_Client, Any, Any]]:
     rigs = make_rigs(11)
     _hip_calibration(params, rigs)
     client = _Client()
+    # reliable, as the node's subscription here: each bad message is sent once and must be counted
+    client.pub = client.node.create_publisher(
+        PoseArray, "markers", QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    )
     proc = _start_node(params)
     try:
         assert client.spin_until(lambda: client.pub.get_subscription_count() > 0, 30.0), "node not discovered"
