@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -132,3 +135,26 @@ def test_status_rounds_once_waits_for_every_named_node_and_names_them() -> None:
     assert not every.complete() and every.nodes == ["/subject_a/jointfit", "/subject_b/jointfit"]
     every.add(a)  # a node heard again: every node with the same period has been heard
     assert every.complete() and every.missing() == []
+
+
+def _node(tmp_path: Path, *ros_args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(200 + os.getpid() % 10)}
+    return subprocess.run(
+        [sys.executable, "-m", "jointfit_ros.node", "--ros-args", *ros_args], env=env, capture_output=True,
+        text=True, timeout=60, cwd=tmp_path,
+    )
+
+
+@pytest.mark.ros
+def test_a_namespaced_node_says_which_entry_it_needs_and_rcl_errors_are_one_line(tmp_path: Path) -> None:
+    pytest.importorskip("rclpy")
+    plain = _write(tmp_path / "plain.yaml", "jointfit:\n  ros__parameters: {joints: [hip]}\n")
+    run = _node(tmp_path, "-r", "__ns:=/subject_a", "--params-file", str(plain))
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+    assert "no entry of the parameter file is for this node, /subject_a/jointfit" in run.stderr, run.stderr
+    assert "key its entry '/subject_a/jointfit:'" in run.stderr and run.stderr.count("\n") == 1, run.stderr
+    for bad in ("missing.yaml", str(_write(tmp_path / "bad.yaml", "/subject_*/jointfit: {ros__parameters: {}}\n"))):
+        run = _node(tmp_path, "--params-file", bad)
+        assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+        line = [ln for ln in run.stderr.splitlines() if ln.startswith("jointfit_node: cannot start: ")]
+        assert len(line) == 1 and "params file" in line[0] and "/project/src" not in line[0], run.stderr
