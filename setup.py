@@ -14,6 +14,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/config/two_subjects", glob("config/two_subjects/*.yaml")),
     ],
     # ROS packages (rclpy, *_msgs) are not pip dependencies: colcon users get
     # them from their ROS install, pip users who want them install the

@@ -95,7 +95,12 @@ def _fit_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="rosbag2 bag (directory, .db3 or .mcap), .c3d or .trc file")
     p.add_argument("--config", required=True, help="the node's parameter file (config/*.yaml)")
     p.add_argument("--out", help="output directory (default: <input name>_jointfit)")
-    p.add_argument("--node-name", default="jointfit", help="entry of the parameter file to read (default jointfit)")
+    p.add_argument(
+        "--node-name",
+        default=None,
+        help="the node whose entries of the parameter file to read, with its namespace (e.g. /subject_a/jointfit; "
+        "default: the file's only node entry, else /jointfit)",
+    )
     p.add_argument(
         "--window",
         choices=("all", "config"),

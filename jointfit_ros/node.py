@@ -15,17 +15,21 @@ parameters and services are listed in the README.
 from __future__ import annotations
 
 import dataclasses
+import re
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -49,6 +53,7 @@ from .conversions import (
 from .graph import graph_problems
 from .guard import CallbackGuard
 from .inputs import MessageRouter, Routed
+from .naming import entry_hint, params_files, status_prefix
 from .params import (
     JOINT_PARAMS,
     NODE_PARAMS,
@@ -66,6 +71,8 @@ from .solver_process import SolverProcess
 from .status_log import StatusLog
 
 __all__ = ["JointfitNode", "main"]
+
+RCLError = _rclpy.RCLError
 
 _ROS_TYPES = {
     "string": ParameterType.PARAMETER_STRING,
@@ -381,11 +388,12 @@ class JointfitNode(Node):
             message += "; " + "; ".join(graph)
             node_values["graph problems"] = " | ".join(graph)
         node_id = self.get_fully_qualified_name()  # which node a status is from (`jointfit status --node`)
-        arr.status.append(diagnostic_status("jointfit: input", level, message, node_values, hardware_id=node_id))
+        prefix = status_prefix(node_id)  # "jointfit", or "subject_a/jointfit" in a namespace
+        arr.status.append(diagnostic_status(f"{prefix}: input", level, message, node_values, hardware_id=node_id))
         for name, runner in self.runners.items():
             st = runner.live_status(now)
             arr.status.append(
-                diagnostic_status(f"jointfit: {name}", st.level, st.message, st.values, hardware_id=node_id)
+                diagnostic_status(f"{prefix}: {name}", st.level, st.message, st.values, hardware_id=node_id)
             )
             note = runner.auto_freeze()  # once done: freeze and save (the next status says frozen)
             if note:
@@ -525,6 +533,27 @@ runs against `python -m jointfit_ros.fake_mocap`).
 """
 
 
+def _rcl_message(exc: Exception) -> str:
+    """rcl's error text without the ``, at /project/src/...`` source locations."""
+    return re.sub(r",? at /\S+:\d+", "", str(exc)).replace("failed to initialize rcl: ", "").strip().rstrip(",")
+
+
+def _params_entry_hint(argv: list[str]) -> str:
+    """Why the parameters may be missing: no entry of the ``--params-file`` files is for this node's full name."""
+    files = []
+    for path in params_files(argv):
+        try:
+            doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            continue  # rcl has read it already; nothing to add
+        files.append((path, [str(k) for k in doc] if isinstance(doc, dict) else []))
+    probe = Node("jointfit", enable_rosout=False)  # the name and namespace after the remaps (-r __ns:=..., -r __node:=...)
+    try:
+        return entry_hint(files, probe.get_fully_qualified_name())
+    finally:
+        probe.destroy_node()
+
+
 def main(args: list[str] | None = None) -> None:
     """Console script ``jointfit_node``."""
     argv = list(sys.argv[1:] if args is None else args)
@@ -532,13 +561,22 @@ def main(args: list[str] | None = None) -> None:
     if {"-h", "--help"} & set(argv[:ros_at]):
         print(USAGE, end="")
         raise SystemExit(0)
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RCLError as exc:  # an unreadable --params-file, a bad remap: rcl's message without its source lines
+        print(f"jointfit_node: cannot start: {_rcl_message(exc)}", file=sys.stderr)
+        raise SystemExit(2) from None
     node: JointfitNode | None = None
     try:
         try:
             node = JointfitNode()
         except (ConfigError, ParameterException) as exc:
-            print(f"jointfit_node: invalid parameters: {exc} (jointfit_node --help: where they are described)", file=sys.stderr)
+            hint = _params_entry_hint(argv)
+            print(
+                f"jointfit_node: invalid parameters: {exc}{'; ' + hint if hint else ''} "
+                "(jointfit_node --help: where they are described)",
+                file=sys.stderr,
+            )
             raise SystemExit(2) from None
         executor = _executor()
         executor.add_node(node)

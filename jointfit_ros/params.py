@@ -24,6 +24,8 @@ from typing import Any
 
 from jointfit_core.errors import JointfitError
 
+from .naming import DEFAULT_NODE, entry_matches, is_wildcard, node_path
+
 __all__ = [
     "ConfigError",
     "ParamSpec",
@@ -914,7 +916,7 @@ def _flatten(values: Mapping[str, Any], prefix: str, out: dict[str, Any]) -> Non
             out[name] = value
 
 
-def params_from_file(path: str | os.PathLike[str], node_name: str = "jointfit") -> dict[str, Any]:
+def params_from_file(path: str | os.PathLike[str], node_name: str | None = None) -> dict[str, Any]:
     """Read a ROS 2 parameter file (``--params-file``) into flat ``{name: value}`` for :func:`node_config`.
 
     Parameters
@@ -922,10 +924,15 @@ def params_from_file(path: str | os.PathLike[str], node_name: str = "jointfit") 
     path : str or os.PathLike
         YAML file of the form ``<node>: {ros__parameters: {...}}``; nested
         mappings become dotted names (``hip: {type: ball}`` is ``hip.type``).
-    node_name : str
-        The entry to read. ``/**`` (every node) entries are read first and the
-        node's own entry overrides them, as ``ros2 run`` does; a file with a
-        single entry is read whatever its name.
+    node_name : str, optional
+        The node the entries are read for, with its namespace
+        (``/subject_a/jointfit``; ``jointfit`` is ``/jointfit``). Its entries
+        are those the node would get from ``--params-file``
+        (:func:`~jointfit_ros.naming.entry_matches`: its full name, ``/**``,
+        ``/*/jointfit`` ...), in the file's order, wildcard entries before the
+        node's own so that it overrides them. None (default): the file's only
+        entry without a wildcard (with the wildcard entries), whatever its
+        name (``/subject_a/jointfit``), else ``/jointfit``.
 
     Returns
     -------
@@ -952,12 +959,17 @@ def params_from_file(path: str | os.PathLike[str], node_name: str = "jointfit") 
         raise ConfigError(f"{file}: not valid YAML{line}") from None
     if not isinstance(doc, Mapping):
         raise ConfigError(f"{file}: expected a mapping '<node name>: {{ros__parameters: ...}}', got {type(doc).__name__}")
-    entries = {str(k).lstrip("/"): v for k, v in doc.items()}
-    chosen = [k for k in ("**", node_name.lstrip("/")) if k in entries]
-    if not chosen and len(entries) == 1:
-        chosen = list(entries)
+    entries = {str(k): v for k, v in doc.items()}
+    named = [k for k in entries if not is_wildcard(k)]
+    if node_name is None:
+        node_name = named[0] if len(named) == 1 else DEFAULT_NODE
+    full = node_path(node_name)
+    chosen = [k for k in entries if is_wildcard(k) and entry_matches(k, full)]
+    chosen += [k for k in named if entry_matches(k, full)]
     if not chosen:
-        raise ConfigError(f"{file}: no entry for node {node_name!r}; entries: {sorted(entries)}")
+        raise ConfigError(
+            f"{file}: no entry for node {full} (its full name, '/**' or another wildcard); entries: {sorted(entries)}"
+        )
     out: dict[str, Any] = {}
     for key in chosen:
         entry = entries[key]

@@ -2,13 +2,17 @@
 
 Usage::
 
-    jointfit status [--node NAME] [--once] [--timeout S]
+    jointfit status [--node NAME ... | --all] [--once] [--timeout S]
     jointfit call {reset,freeze,save} [true|false] [--node NAME] [--timeout S]
 
 ``status`` subscribes to ``/diagnostics`` and prints one line per joint of the
 node (level, estimate with its sd and units, coverage, frames, gated shares,
 the status message), refreshed at every diagnostics message; ``--once`` prints
-one round and exits. ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
+one round and exits. ``--node`` given more than once, or ``--all`` (every
+jointfit node heard), watches several nodes (one per subject,
+``/subject_a/jointfit``, ``/subject_b/jointfit``): each line then starts with
+its node's full name; ``--once`` waits for a round of every named node (with
+``--all``: until a node is heard a second time, or ``--timeout``). ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
 ``<node>/freeze`` (std_srvs/SetBool, default true) or ``<node>/save``
 (std_srvs/Trigger) and prints the node's answer.
 
@@ -28,7 +32,9 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
-__all__ = ["status_main", "call_main", "status_lines", "node_path"]
+from .naming import node_path, status_prefix
+
+__all__ = ["status_main", "call_main", "status_lines", "status_nodes", "StatusRounds", "node_path"]
 
 LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
@@ -37,12 +43,6 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         print(f"{self.prog}: error: {message}", file=sys.stderr)
         raise SystemExit(2)
-
-
-def node_path(name: str) -> str:
-    """The fully qualified node name: ``jointfit`` -> ``/jointfit``; ``/lab1/jointfit`` as given."""
-    name = name.strip().rstrip("/")
-    return name if name.startswith("/") else "/" + name
 
 
 def _positive(text: str) -> float:
@@ -55,11 +55,20 @@ def _positive(text: str) -> float:
     return value
 
 
-def _add_node(p: argparse.ArgumentParser) -> None:
+def _add_node(p: argparse.ArgumentParser, many: bool = False) -> None:
+    if many:
+        p.add_argument(
+            "--node",
+            action="append",
+            default=None,
+            help="the node's name, with its namespace if any (default jointfit; e.g. /subject_a/jointfit); "
+            "give it again for more nodes",
+        )
+        return
     p.add_argument(
         "--node",
         default="jointfit",
-        help="the node's name, with its namespace if any (default jointfit; e.g. /lab1/jointfit)",
+        help="the node's name, with its namespace if any (default jointfit; e.g. /subject_a/jointfit)",
     )
 
 
@@ -131,6 +140,32 @@ def _input_line(level: str, message: str, values: dict[str, str]) -> str:
     return " | ".join(parts)
 
 
+def _joint_name(st: Any, node: str) -> str | None:
+    """The joint (or ``input``) a status names, when it is ``node``'s; else None.
+
+    A node's statuses carry its full name in ``hardware_id`` and are named
+    ``<status_prefix(node)>: <joint>`` (``jointfit: hip``, in a namespace
+    ``subject_a/jointfit: hip``); ``jointfit: <joint>`` with an empty
+    ``hardware_id`` (an older node) is taken for any node.
+    """
+    if st.hardware_id not in ("", node):
+        return None
+    for prefix in {f"{status_prefix(node)}: " if st.hardware_id else "jointfit: ", "jointfit: "}:
+        if st.name.startswith(prefix):
+            return str(st.name[len(prefix) :])
+    return None
+
+
+def status_nodes(statuses: Sequence[Any]) -> list[str]:
+    """The full names of the jointfit nodes whose statuses are among ``statuses`` (from their ``hardware_id``)."""
+    found: list[str] = []
+    for st in statuses:
+        node = st.hardware_id
+        if node.startswith("/") and node not in found and _joint_name(st, node) is not None:
+            found.append(node)
+    return found
+
+
 def status_lines(statuses: Sequence[Any], node: str) -> list[str]:
     """One line for the node's input status and one per joint, from ``diagnostic_msgs/DiagnosticStatus`` messages.
 
@@ -150,11 +185,11 @@ def status_lines(statuses: Sequence[Any], node: str) -> list[str]:
     """
     lines: list[str] = []
     for st in statuses:
-        if not st.name.startswith("jointfit: ") or st.hardware_id not in ("", node):
+        name = _joint_name(st, node)
+        if name is None:
             continue
         level = LEVELS.get(st.level[0] if isinstance(st.level, bytes) else int(st.level), "?")
         values = {kv.key: kv.value for kv in st.values}
-        name = st.name[len("jointfit: ") :]
         if name == "input":
             lines.insert(0, _input_line(level, st.message, values))
         else:
@@ -194,12 +229,66 @@ class _Session:
         self._rclpy.try_shutdown(context=self.context)
 
 
+class StatusRounds:
+    """Rounds of ``/diagnostics`` lines per node, for one node, several, or every jointfit node heard.
+
+    Parameters
+    ----------
+    nodes : sequence of str or None
+        Full node names (:func:`node_path`) in the order to show them; None:
+        every jointfit node whose statuses arrive, in the order heard.
+    """
+
+    def __init__(self, nodes: Sequence[str] | None) -> None:
+        self.nodes: list[str] = list(nodes) if nodes is not None else []
+        self.every = nodes is None
+        self.first: dict[str, list[str]] = {}  # each node's first round (what --once prints)
+        self.latest: dict[str, list[str]] = {}
+        self.heard: dict[str, int] = {}  # rounds per node
+        self.pending: list[tuple[str, list[str]]] = []  # new rounds not printed yet
+
+    @property
+    def many(self) -> bool:
+        """Whether lines name their node (more than one node asked for, or --all)."""
+        return self.every or len(self.nodes) > 1
+
+    def add(self, statuses: Sequence[Any]) -> None:
+        """Take one ``/diagnostics`` message's statuses."""
+        for node in status_nodes(statuses) if self.every else self.nodes:
+            lines = status_lines(statuses, node)
+            if not lines:
+                continue
+            if node not in self.nodes:
+                self.nodes.append(node)
+            self.first.setdefault(node, lines)
+            self.latest[node] = lines
+            self.heard[node] = self.heard.get(node, 0) + 1
+            self.pending.append((node, lines))
+
+    def complete(self) -> bool:
+        """One round of every node: each named node heard, or (every node) one of them heard twice."""
+        if self.every:
+            return any(n > 1 for n in self.heard.values())
+        return all(node in self.first for node in self.nodes)
+
+    def missing(self) -> list[str]:
+        """The named nodes not heard yet (every node: none heard at all, ``["any jointfit node"]``)."""
+        if self.every:
+            return [] if self.heard else ["any jointfit node"]
+        return [node for node in self.nodes if node not in self.first]
+
+    def text(self, node: str, lines: Sequence[str]) -> str:
+        """A node's round as printed: its lines, each after the node's full name when several are watched."""
+        return "\n".join(f"{node} {line}" if self.many else line for line in lines)
+
+
 def _status_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="jointfit status",
-        description="Watch a running jointfit node's /diagnostics: one line per joint, refreshed as they arrive.",
+        description="Watch running jointfit nodes' /diagnostics: one line per joint, refreshed as they arrive.",
     )
-    _add_node(p)
+    _add_node(p, many=True)
+    p.add_argument("--all", action="store_true", help="every jointfit node heard on /diagnostics (lines name their node)")
     p.add_argument("--once", action="store_true", help="print one round and exit (1 if none arrives in time)")
     p.add_argument(
         "--timeout",
@@ -212,40 +301,43 @@ def _status_parser() -> argparse.ArgumentParser:
 
 def status_main(argv: Sequence[str]) -> int:
     """``jointfit status``; returns the exit status."""
-    opts = _status_parser().parse_args(list(argv))
-    node = node_path(opts.node)
+    parser = _status_parser()
+    opts = parser.parse_args(list(argv))
+    if opts.all and opts.node:
+        parser.error("give --node or --all, not both")
+    nodes = None if opts.all else [node_path(n) for n in dict.fromkeys(opts.node or ["jointfit"])]
     timeout = opts.timeout if opts.timeout is not None else (5.0 if opts.once else None)
     from diagnostic_msgs.msg import DiagnosticArray
 
     session = _Session()
-    rounds: list[list[str]] = []
+    rounds = StatusRounds(nodes)
     clear = sys.stdout.isatty() and not opts.once
 
     def on_diagnostics(msg: DiagnosticArray) -> None:
-        lines = status_lines(msg.status, node)
-        if lines:
-            rounds.append(lines)
+        rounds.add(msg.status)
 
     session.node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
     try:
-        if not session.spin_until(lambda: bool(rounds), timeout):
+        waited = session.spin_until(rounds.complete if opts.once else lambda: bool(rounds.pending), timeout)
+        if not rounds.first or (opts.once and not waited and not opts.all):
             print(
-                f"jointfit status: no /diagnostics from {node} within {timeout:g} s (is the node running, with "
-                f"the same ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?)",
+                f"jointfit status: no /diagnostics from {', '.join(rounds.missing())} within {timeout:g} s (is the "
+                f"node running, with the same ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?)",
                 file=sys.stderr,
             )
             return 1
+        if opts.once:
+            print("\n".join(rounds.text(node, rounds.first[node]) for node in rounds.nodes), flush=True)
+            return 0
         while True:
-            while rounds:
-                lines = rounds.pop(0)
+            while rounds.pending:
+                node, lines = rounds.pending.pop(0)
                 if clear:
-                    print("\x1b[H\x1b[J", end="")
-                elif not opts.once:
-                    print(f"-- {node} {time.strftime('%H:%M:%S')}")
-                print("\n".join(lines), flush=True)
-                if opts.once:
-                    return 0
-            session.spin_until(lambda: bool(rounds), None)
+                    print("\x1b[H\x1b[J" + "\n".join(rounds.text(n, rounds.latest[n]) for n in rounds.latest), flush=True)
+                    continue
+                print(f"-- {node} {time.strftime('%H:%M:%S')}")
+                print(rounds.text(node, lines), flush=True)
+            session.spin_until(lambda: bool(rounds.pending), None)
     except KeyboardInterrupt:
         return 0
     finally:
