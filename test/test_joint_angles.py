@@ -251,3 +251,17 @@ def test_urdf_refuses_what_is_not_one_tree(skeleton_run: dict) -> None:
     del broken["parent_markers"]
     with pytest.raises(InputError, match="joint's record"):
         urdf_from_calibrations([broken])
+
+
+def test_jointfit_urdf_command(skeleton_run: dict, tmp_path) -> None:
+    import subprocess
+    import sys
+
+    from jointfit_core.calibration import save_calibration
+
+    paths = [str(save_calibration(tmp_path / f"{k}.yaml", c)) for k, c in enumerate(_calibrations(skeleton_run["runners"]))]
+    done = subprocess.run([sys.executable, "-m", "jointfit_ros.cli", "urdf", *paths], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("<?xml") and done.stdout.count("<joint ") == 6 * 2 + 2 * 2  # 4 hinges x2, 2 balls x4
+    bad = subprocess.run([sys.executable, "-m", "jointfit_ros.cli", "urdf", paths[1], paths[5]], capture_output=True, text=True)
+    assert bad.returncode == 1 and "separate trees" in bad.stderr and "Traceback" not in bad.stderr
