@@ -153,6 +153,14 @@ class JointOutput:
         Distance between the parent- and the child-carried joint (hinge: of
         the parent's axis point from the child's axis line); NaN when the
         child could not be posed in this frame.
+    rotation : ndarray, shape (3, 3) or None
+        This frame's relative rotation, child template frame to parent
+        template frame (``R_p^T R_c``; the joint angles' input,
+        :mod:`jointfit_core.joint_angles`); None when the child was not posed.
+    rotation_cov : ndarray, shape (3, 3) or None
+        Its covariance (rad^2) from this frame's two pose fits, as a left
+        perturbation in the parent template frame
+        (:func:`~jointfit_core.joint_angles.relative_rotation_cov`).
     """
 
     kind: str
@@ -161,6 +169,8 @@ class JointOutput:
     direction: FloatArray | None
     cov_direction: FloatArray | None
     residual: float
+    rotation: FloatArray | None = None
+    rotation_cov: FloatArray | None = None
 
 
 # --------------------------------------------------------------------------- per-frame poses
@@ -1023,6 +1033,7 @@ class OnlineJoint:
         self._serial: SerialInflation | None = None
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
+        self._matched: FloatArray | None = None  # hinge: point_child_matched (see _matched_child_point)
         # The outlier gate's turn test, per segment: the reference rotation (the segment's
         # last pose that passed the gate, carried along through the frames held out since),
         # whether there is one, the number of the frame that set it (frames are numbered as
@@ -2026,7 +2037,7 @@ class OnlineJoint:
             self._prev_in = False
         if ps.parent is None or self._solution is None:
             return None
-        child_pose = (R[1], d[1]) if ps.child is not None else None
+        child_pose = (R[1], d[1], ps.child) if ps.child is not None else None
         return self._world(R[0], d[0], ps.parent, child_pose)
 
     def _joint_fails(self, R: FloatArray, d: FloatArray, frame_no: int, stamp: float | None) -> bool:
@@ -2188,7 +2199,11 @@ class OnlineJoint:
         self._joint.arm(self._solution, self.length_scale)
 
     def _world(
-        self, Rp: FloatArray, dp: FloatArray, vp: _VisibleSet, child_pose: tuple[FloatArray, FloatArray] | None
+        self,
+        Rp: FloatArray,
+        dp: FloatArray,
+        vp: _VisibleSet,
+        child_pose: tuple[FloatArray, FloatArray, _VisibleSet] | None,
     ) -> JointOutput:
         sol = self._solution
         assert sol is not None
@@ -2212,19 +2227,23 @@ class OnlineJoint:
         cov = Rp @ cov_local @ Rp.T
         residual = float("nan")
         direction = cov_dir = None
+        Q = Q_cov = None
         if cov_dir_local is not None:
             assert isinstance(sol, PoseSumsAxis)
             direction = Rp @ sol.direction_parent
             cov_dir = Rp @ cov_dir_local @ Rp.T
         if child_pose is not None:
-            Rc, dc = child_pose
+            Rc, dc, vc = child_pose
             diff = position - (Rc @ other + dc)
             if direction is not None:
                 assert isinstance(sol, PoseSumsAxis)
                 axis_c = Rc @ sol.direction_child
                 diff = diff - axis_c * (diff @ axis_c)
             residual = float(np.sqrt(diff @ diff))
-        return JointOutput(self.kind, position, cov, direction, cov_dir, residual)
+            Q = Rp.T @ Rc
+            # the poses' rotation errors (local frames) as one left perturbation of Q (joint_angles.relative_rotation_cov)
+            Q_cov = self._sigma[0] ** 2 * vp.W_unit[:3, :3] + self._sigma[1] ** 2 * (Q @ vc.W_unit[:3, :3] @ Q.T)
+        return JointOutput(self.kind, position, cov, direction, cov_dir, residual, Q, Q_cov)
 
     # ------------------------------------------------------------------ calibration
 
@@ -2256,6 +2275,7 @@ class OnlineJoint:
         p_tpl, c_tpl = self.templates
         assert p_tpl is not None and c_tpl is not None
         fit = fit_to_dict(sol)
+        self._matched = self._matched_child_point(sol)
         spec = self.spec
         return {
             "format": CALIBRATION_FORMAT,
@@ -2280,7 +2300,31 @@ class OnlineJoint:
             "attachment": list(self.attachment),
             "artefact_scale": self._artefact_scale,
             "estimate": fit,
+            "point_child_matched": None if self._matched is None else self._matched.tolist(),
         }
+
+    def _matched_child_point(self, sol: PoseSumsCentre | PoseSumsAxis) -> FloatArray | None:
+        """Hinge: the child-frame point that is the parent's axis point (``point_parent``), from the window's mean pose.
+
+        ``point_child`` is the axis point nearest the child's own origin, another point
+        of the axis; over the window the child's maps to the parent's axis line at
+        ``point_parent + s direction_parent`` with ``s = direction_parent . (mean(Q) p_c +
+        mean(t) - p_p)`` (linear in the relative pose, so exact from the sums); the
+        parent's point is then ``p_c - s direction_child`` in the child frame. None for
+        a ball, or without frames in the statistics (a loaded calibration keeps its own).
+        """
+        if not isinstance(sol, PoseSumsAxis):
+            return None
+        try:
+            sums = self._entered_sums()
+        except InputError:
+            return self._matched
+        if not sums[0] > 0.0:
+            return self._matched
+        Z = (sums[_Z] / sums[0]).reshape(3, 4)
+        s = float(sol.direction_parent @ (Z[:, :3] @ sol.point_child + Z[:, 3] - sol.point_parent))
+        out: FloatArray = sol.point_child - s * sol.direction_child
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> OnlineJoint:
@@ -2346,6 +2390,8 @@ class OnlineJoint:
                 raise InputError(f"calibration: the noise sds {est._sigma} are not finite positive numbers")
             serial = data.get("serial_inflation")  # absent from calibrations saved before it existed
             est._serial = None if serial is None else _serial_from_dict(serial)
+            matched = data.get("point_child_matched")  # absent before it existed
+            est._matched = None if matched is None else check_vector3(matched, name="point_child_matched")
             est._world_cache = {}
             est._joint.arm(est._solution, est.length_scale)
         except InputError:

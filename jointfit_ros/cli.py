@@ -290,7 +290,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point ``jointfit``."""
     args = list(sys.argv[1:] if argv is None else argv)
     usage = (
-        f"usage: {PROG} {{fit,markers,convert,replay,status,call}} ... (see '{PROG} fit --help', "
+        f"usage: {PROG} {{fit,markers,convert,replay,urdf,status,call}} ... (see '{PROG} fit --help', "
         f"'{PROG} convert --help', '{PROG} status --help', '{PROG} call --help', ...)"
     )
     if not args or args[0] in ("-h", "--help"):
@@ -311,6 +311,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         from .replay import replay_main
 
         sys.exit(replay_main(rest))
+    if command == "urdf":
+        from .urdf_cli import urdf_main
+
+        sys.exit(urdf_main(rest))
     if command in ("status", "call"):
         from .shell import call_main, status_main
 

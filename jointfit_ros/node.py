@@ -33,7 +33,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import JointState, PointCloud2
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -53,6 +53,7 @@ from .conversions import (
 from .graph import graph_problems
 from .guard import CallbackGuard
 from .inputs import MessageRouter, Routed
+from .joint_states import JointStates, joint_state_bytes
 from .naming import entry_hint, params_files, status_prefix
 from .params import (
     JOINT_PARAMS,
@@ -128,6 +129,8 @@ class JointfitNode(Node):
             self._local_pubs[j.name] = self.create_publisher(
                 PoseWithCovarianceStamped, f"{j.name}/{suffix}_local", 10
             )
+        self._joint_states = JointStates([(j.name, j.type) for j in self.cfg.joints])
+        self._joint_state_pub = self.create_publisher(JointState, "~/joint_states", 10)
         self._rviz_pub = self.create_publisher(MarkerArray, "~/markers", 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
@@ -255,14 +258,18 @@ class JointfitNode(Node):
             self.router.last_problem = None
 
     def _on_markers(self, raw: bytes) -> None:
-        for routed in self.router.markers(raw):
-            self._publish_world(routed)
+        routed = self.router.markers(raw)
+        for r in routed:
+            self._publish_world(r)
+        self._publish_joint_states(routed)
         self._report_problem()
 
     def _pose_callback(self, topic: str) -> Callable[[bytes], None]:
         def callback(raw: bytes) -> None:
-            for routed in self.router.pose(topic, raw):
-                self._publish_world(routed)
+            routed = self.router.pose(topic, raw)
+            for r in routed:
+                self._publish_world(r)
+            self._publish_joint_states(routed)
             self._report_problem()
 
         return callback
@@ -280,6 +287,16 @@ class JointfitNode(Node):
             raw = axis_pose_bytes(stamp_ns, frame, out.position, out.direction, out.cov, out.cov_direction)
         self._world_pubs[runner.cfg.name].publish(raw)
         self._last_outputs[runner.cfg.name] = (stamp_ns, frame, out)
+
+    def _publish_joint_states(self, routed: list[Routed]) -> None:
+        """One ``~/joint_states`` per input stamp among ``routed`` (a message's outputs), with the joints that have angles."""
+        stamps = sorted({r.stamp_ns for r in routed})
+        for stamp in stamps:
+            group = routed if len(stamps) == 1 else [r for r in routed if r.stamp_ns == stamp]
+            angles = self._joint_states.frame(stamp, group)
+            if angles is not None:
+                frame = self.cfg.world_frame or group[0].frame_id
+                self._joint_state_pub.publish(joint_state_bytes(stamp, frame, angles))
 
     def _now_ns(self) -> int:
         return int(self.get_clock().now().nanoseconds)
@@ -475,6 +492,7 @@ class JointfitNode(Node):
         for runner in self.runners.values():
             runner.reset()
         self._last_outputs.clear()
+        self._joint_states.reset()
         self.router.reset()
         response.success = True
         response.message = f"reset {', '.join(self.runners)}"

@@ -14,7 +14,7 @@ import math
 import shutil
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -131,7 +131,7 @@ def widened_output(out: JointOutput, lever: float) -> JointOutput:
     if out.direction is not None and cov_direction is not None:
         d = out.direction
         cov_direction = cov_direction + np.radians(AXIS_SD_MAX_DEG) ** 2 * (np.eye(3) - np.outer(d, d))
-    return JointOutput(out.kind, out.position, cov, out.direction, cov_direction, out.residual)
+    return replace(out, cov=cov, cov_direction=cov_direction)
 
 
 def output_sane(out: JointOutput, limit: float) -> bool:
@@ -364,7 +364,7 @@ class JointRunner:
             "since it was saved; estimating anew"
         )
 
-    def _identity(self) -> dict[str, Any]:
+    def identity(self) -> dict[str, Any]:
         """What a calibration file records of the joint it was made for (checked on load)."""
         return {
             "joint": self.cfg.name,
@@ -376,7 +376,7 @@ class JointRunner:
 
     def _foreign(self, data: dict[str, Any]) -> str:
         """Why a calibration's recorded identity is not this joint's (empty when it is, or records none)."""
-        mine = self._identity()
+        mine = self.identity()
         for key, value in mine.items():
             if key in data and data[key] != value:
                 return f"it was made for {key} {data[key]!r}, this joint has {value!r}"
@@ -628,7 +628,7 @@ class JointRunner:
         self.estimator.set_reference_direction(choice.sign * sol.direction_parent)
         self.estimate(force=True)
         if choice.sign < 0.0:
-            out = JointOutput(out.kind, out.position, out.cov, -out.direction, out.cov_direction, out.residual)
+            out = replace(out, direction=-out.direction)
         return out
 
     # ------------------------------------------------------------------ estimates
@@ -755,7 +755,7 @@ class JointRunner:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
         self._check_usable("save")
         data = self.estimator.to_dict()
-        data.update(self._identity())
+        data.update(self.identity())
         kept = ""
         if self._unloadable and path.exists():
             aside = path.with_name(f"{path.name}.unloadable-{time.strftime('%Y%m%d-%H%M%S')}")
