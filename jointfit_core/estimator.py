@@ -2042,16 +2042,18 @@ class OnlineJoint:
 
     def _joint_fails(self, R: FloatArray, d: FloatArray, frame_no: int, stamp: float | None) -> bool:
         """The joint test (:mod:`jointfit_core.joint_gate`) of a frame posed ``R`` (2, 3, 3), ``d`` (2, 3); counts a failure."""
-        z = _relative_poses(R[None], d[None])
-        numbers = np.array([frame_no], dtype=np.int64)
-        score = self._joint.scores_of(z, numbers)
-        if self._joint.fails(float(score[0])):
+        z = np.empty((3, 4))
+        Rp_t = R[0].T
+        np.matmul(Rp_t, R[1], out=z[:, :3])
+        np.matmul(Rp_t, d[1] - d[0], out=z[:, 3])
+        score, e = self._joint.score_one(z, frame_no)
+        if self._joint.fails(score):
             self.joint_gated_frames += 1
             self._drop("joint_gated")
             if self.gate_log is not None:
                 self.gate_log.append((frame_no, 2, np.nan if stamp is None else stamp))
             return True
-        self._joint.passed(z, numbers, score, self._frozen)
+        self._joint.pass_one(z, frame_no, score, e, self._frozen)
         return False
 
     # ------------------------------------------------------------------ estimates

@@ -47,6 +47,7 @@ afresh.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -137,6 +138,7 @@ class JointTrack:
         self.limit = np.inf  # score limit (input units); inf: not armed
         self.z_ref = np.zeros((2, 3, 4))  # the last passed frame's relative pose, and the one's before it
         self.ref_frame = np.zeros(2, dtype=np.int64)  # their frame numbers; 0: none
+        self.e_ref = np.zeros((2, 3))  # their joint residuals under the current residual
         self.fails_in_row = 0
 
     @property
@@ -150,6 +152,7 @@ class JointTrack:
             self.residual, self.limit = None, np.inf
             return
         self.residual = JointResidual.of(solution, length)
+        self.e_ref = joint_residuals(self.z_ref, self.residual)
         self.limit = self._limit()
 
     def _limit(self) -> float:
@@ -171,9 +174,9 @@ class JointTrack:
         k = z.shape[0]
         if self.residual is None or k == 0:
             return np.full(k, np.nan)
-        zz = np.concatenate([self.z_ref[::-1], z])  # (K + 2, 3, 4): the older reference first
+        # (K + 2, m): the older reference first (their residuals as kept, the same numbers as score_one's)
+        e = np.concatenate([self.e_ref[::-1], joint_residuals(z, self.residual)])
         nn = np.concatenate([self.ref_frame[::-1], numbers])
-        e = joint_residuals(zz, self.residual)
         best = np.full(k, np.inf)
         for back in (1, 2):
             gap = nn[2:] - nn[2 - back : nn.size - back]
@@ -183,6 +186,33 @@ class JointTrack:
             best = np.where(ok, np.minimum(best, jump), best)
         out: FloatArray = np.where(np.isfinite(best), best, np.nan)
         return out
+
+    def score_one(self, z: FloatArray, number: int) -> tuple[float, FloatArray | None]:
+        """:meth:`scores_of` of one frame ``z`` (3, 4) (the per-frame path), and its residual (None without one)."""
+        res = self.residual
+        if res is None:
+            return float("nan"), None
+        e = joint_residuals(z[None], res)[0]
+        best = float("inf")
+        for back in (0, 1):
+            at = int(self.ref_frame[back])
+            gap = number - at
+            if at > 0 and gap <= GATE_JUMP_GAP_CAP:
+                d = e - self.e_ref[back]
+                best = min(best, math.sqrt(float(d @ d)) / math.sqrt(max(gap - back, 1)))
+        return (best if best < float("inf") else float("nan")), e
+
+    def pass_one(self, z: FloatArray, number: int, score: float, e: FloatArray | None, frozen: bool) -> None:
+        """:meth:`passed` of one frame ``z`` (3, 4), with its :meth:`score_one`."""
+        if score == score:  # not NaN
+            self.scores.append(score)
+        self.z_ref[1], self.ref_frame[1], self.e_ref[1] = self.z_ref[0], self.ref_frame[0], self.e_ref[0]
+        self.z_ref[0], self.ref_frame[0] = z, number
+        if e is not None:
+            self.e_ref[0] = e
+        self.fails_in_row = 0
+        if frozen and not self.armed and self.residual is not None:
+            self.limit = self._limit()
 
     def fails(self, score: float) -> bool:
         """Whether a frame of ``score`` (:meth:`scores_of`) fails (and counts the failures in a row)."""
@@ -212,6 +242,8 @@ class JointTrack:
         else:
             self.z_ref[:] = z[::-1][:2]
             self.ref_frame[:] = numbers[::-1][:2]
+        if self.residual is not None:
+            self.e_ref = joint_residuals(self.z_ref, self.residual)
         self.fails_in_row = 0
         if frozen and not self.armed and self.residual is not None:
             self.limit = self._limit()

@@ -489,6 +489,10 @@ class JointRunner:
             if scale > 0.0:
                 for rows in (self.parent_rows, self.child_rows):
                     y = frames[..., rows, :]
+                    # no marker is far from the mean when the segment's extent is within the limit (the usual
+                    # frame: two reductions instead of the test below)
+                    if bool((np.fmax.reduce(y, axis=-2) - np.fmin.reduce(y, axis=-2) <= scale).all()):
+                        continue
                     seen = ~np.isnan(y[..., :1])
                     centre = np.where(seen, y, 0.0).sum(axis=-2, keepdims=True) / np.maximum(
                         seen.sum(axis=-2, keepdims=True), 1
