@@ -2,8 +2,10 @@
 
 :class:`ConsistencyMonitor` runs :func:`~jointfit_core.block_check.window_consistency`
 on a joint's window at diagnostics time, not per frame: at most once per new
-estimate and every :data:`CONSISTENCY_PERIOD_S` seconds (a check solves
-:data:`~jointfit_core.consistency.CONSISTENCY_BLOCKS` blocks: tens of ms), and
+estimate and every :data:`CONSISTENCY_PERIOD_S` seconds, and the joints of a
+process at least :data:`CONSISTENCY_SPACING_S` apart (a check solves
+:data:`~jointfit_core.consistency.CONSISTENCY_BLOCKS` blocks: 20-80 ms for a
+3000-frame window), and
 gives its verdict as diagnostic values whose keys carry their units.
 """
 
@@ -22,6 +24,10 @@ __all__ = ["ConsistencyMonitor", "CONSISTENCY_PERIOD_S", "consistency_values"]
 
 #: Seconds (monotonic) between two checks of one joint's window while its estimate keeps changing.
 CONSISTENCY_PERIOD_S = 10.0
+
+#: Seconds between two re-checks of any joints of the process: a 12-joint skeleton spreads its checks
+#: over the diagnostics ticks instead of solving 48 blocks in one (a joint's first check is not held back).
+CONSISTENCY_SPACING_S = 0.5
 
 
 def consistency_values(check: BlockConsistency | None, frames: int, units: str, why_none: str) -> dict[str, Any]:
@@ -52,6 +58,9 @@ class ConsistencyMonitor:
         Fewest seconds (``time.monotonic``) between two checks of the same estimator.
     """
 
+    #: Earliest monotonic time of the next re-check of any monitor of the process (see :data:`CONSISTENCY_SPACING_S`).
+    _next_any: float = -math.inf
+
     def __init__(self, period_s: float = CONSISTENCY_PERIOD_S) -> None:
         self.period_s = float(period_s)
         self._key: tuple[int, int] | None = None
@@ -68,8 +77,10 @@ class ConsistencyMonitor:
         now = time.monotonic() if now is None else now
         key = est.solved_version
         new_estimator = self._key is None or key[0] != self._key[0]
-        if est.solution is not None and key != self._key and (new_estimator or now - self._at >= self.period_s):
+        due = now - self._at >= self.period_s and now >= ConsistencyMonitor._next_any
+        if est.solution is not None and key != self._key and (new_estimator or due):
             self._key, self._at, self._frames = key, now, est.n_window
+            ConsistencyMonitor._next_any = now + CONSISTENCY_SPACING_S
             try:
                 self.check = window_consistency(est, units=units)
             except JointfitError:

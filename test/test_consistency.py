@@ -284,3 +284,34 @@ def test_fit_reports_the_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert f"WARNING: {ARTEFACT_VERDICT}" in stdout
     code, joint, stdout = results["skin"]
     assert code == 0 and joint["consistency"]["consistent"] is not None
+
+
+def test_monitor_checks_at_diagnostics_time_not_per_estimate(monkeypatch: pytest.MonkeyPatch) -> None:
+    from jointfit_ros.consistency_status import CONSISTENCY_PERIOD_S, ConsistencyMonitor
+
+    monkeypatch.setattr(ConsistencyMonitor, "_next_any", -np.inf)
+    rng = np.random.default_rng(5)
+    motion = two_segment_motion(rng, kind="ball")
+    t = np.arange(2400) / 60.0
+    yp, yc = motion.markers_at(t)
+    yp, yc = yp + rng.normal(0.0, 0.5, yp.shape), yc + rng.normal(0.0, 0.5, yc.shape)
+    est = OnlineJoint("ball", window=3000)
+    est.update_many(yp[:1200], yc[:1200], t[:1200])
+    est.estimate()
+    monitor = ConsistencyMonitor()
+    first = monitor.values(est, "mm", now=0.0)
+    assert first["consistency checked at frames in window"] == 1200 and first["consistency"].startswith("consistent")
+    assert first["block spread (mm)"] > 0.0 and "block spread (deg)" not in first
+    est.update_many(yp[1200:], yc[1200:], t[1200:])
+    est.estimate()
+    # a new estimate within the period: the earlier check stands (and says at which window it was made)
+    assert monitor.values(est, "mm", now=1.0)["consistency checked at frames in window"] == 1200
+    later = monitor.values(est, "mm", now=CONSISTENCY_PERIOD_S + 1.0)
+    assert later["consistency checked at frames in window"] == 2400
+    assert monitor.warning(est) == ""
+    est.freeze()
+    assert monitor.values(est, "mm", now=100.0) == {"consistency": "not checked: frozen"}
+    forgetting = OnlineJoint("ball", half_life=500)
+    forgetting.update_many(yp, yc, t)
+    forgetting.estimate()
+    assert "exponential forgetting" in ConsistencyMonitor().values(forgetting, "mm")["consistency"]
