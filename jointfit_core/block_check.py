@@ -45,9 +45,13 @@ _WIDE_ONLY = ("centre poorly determined", "axis direction poorly determined", "a
 
 def _comparable(sol: PoseSumsCentre | PoseSumsAxis) -> bool:
     """A block estimate enters the comparison: identifiable, or only too uncertain (not degenerate motion)."""
-    covs = [sol.cov] if isinstance(sol, PoseSumsCentre) else [sol.cov_direction_parent, sol.cov_point_parent]
-    if not all(np.isfinite(c).all() for c in covs):
-        return False
+    if isinstance(sol, PoseSumsCentre):
+        covs, ranks = [sol.cov_parent], [3]
+    else:
+        covs, ranks = [sol.cov_direction_parent, sol.cov_point_parent], [2, 2]
+    for c, rank in zip(covs, ranks, strict=True):
+        if not np.isfinite(c).all() or np.linalg.eigvalsh(c)[-rank] <= 0.0:
+            return False  # no variance in a compared direction: no weight to give it
     return sol.identifiable or sol.reason.startswith(_WIDE_ONLY)
 
 

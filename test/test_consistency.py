@@ -315,3 +315,27 @@ def test_monitor_checks_at_diagnostics_time_not_per_estimate(monkeypatch: pytest
     forgetting.update_many(yp, yc, t)
     forgetting.estimate()
     assert "exponential forgetting" in ConsistencyMonitor().values(forgetting, "mm")["consistency"]
+
+
+def test_still_block_is_skipped() -> None:
+    """A block without relative rotation (a still stance) cannot be solved alone: skipped, the rest compared."""
+    from jointfit_core.synthetic import markers_from_poses
+
+    rng = np.random.default_rng(9)
+    motion = two_segment_motion(rng, kind="ball")
+    t = np.arange(2400) / 60.0
+    R_p, d_p, R_c, d_c = motion.poses_at(t)
+    still = slice(0, 600)
+    Q0 = R_p[0].T @ R_c[0]
+    R_c[still] = R_p[still] @ Q0
+    joint = np.einsum("nij,j->ni", R_p[still], motion.centre_parent) + d_p[still]
+    d_c[still] = joint - np.einsum("nij,j->ni", R_c[still], motion.centre_child)
+    yp, yc = markers_from_poses((R_p, d_p, R_c, d_c), motion.template_parent, motion.template_child)
+    yp, yc = yp + rng.normal(0.0, 0.5, yp.shape), yc + rng.normal(0.0, 0.5, yc.shape)
+    est = OnlineJoint("ball", window=3000)
+    est.update_many(yp, yc, t)
+    est.estimate()
+    c = window_consistency(est, units="mm")
+    assert c is not None and c.n_skipped == 1 and c.n_blocks == 3 and c.dof == 6
+    assert c.consistent is True, c.message
+    np.testing.assert_array_equal(c.frames, [600, 600, 600])
