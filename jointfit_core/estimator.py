@@ -2078,6 +2078,31 @@ class OnlineJoint:
         """
         return LagSums.from_vector(self._entered_sums()[_LAG : _LAG + 29])
 
+    def sums_vector(self) -> FloatArray | None:
+        """A copy of the window's sums vector (the layout :meth:`request_for` takes); None before any frame entered."""
+        if self._sums is None or self._sums.sums[0] <= 0.0:
+            return None
+        return self._sums.sums.copy()
+
+    def window_contributions(self) -> tuple[FloatArray, FloatArray] | None:
+        """Each frame's contribution to the window's sums, oldest first, and its stamp.
+
+        Returns
+        -------
+        (ndarray, shape (n, n_sums), ndarray, shape (n,)) or None
+            The rows sum to :meth:`sums_vector`; stamps in seconds (NaN when
+            not stamped). None for exponential forgetting (which keeps no
+            frames) and before any frame entered.
+        """
+        if self._sums is None or self._sums.spec.exponential or self._sums.n_window == 0:
+            return None
+        return self._sums.window_records(), self._sums.window_stamps()
+
+    @property
+    def solved_version(self) -> tuple[int, int]:
+        """``(generation, version)`` of the window the current estimate was solved from (changes with every solve)."""
+        return self._generation, self._solved_version
+
     def _entered_sums(self) -> FloatArray:
         """The window's sums vector; InputError when no frame has entered the statistics yet."""
         if self._sums is None or self._sums.sums[0] <= 0.0:
@@ -2149,9 +2174,21 @@ class OnlineJoint:
         """
         if self._solution is not None and (self._frozen or self._version == self._solved_version):
             return None
+        return self.request_for(self._entered_sums().copy())
+
+    def request_for(self, sums: FloatArray) -> SolveRequest:
+        """A :class:`SolveRequest` of this estimator's settings for other sums (e.g. one block of the window).
+
+        Parameters
+        ----------
+        sums : ndarray, shape (n_sums,)
+            A sums vector in the estimator's layout: a sum of rows of
+            :meth:`window_contributions`, or a difference of :meth:`sums_vector`
+            snapshots of a window that forgets nothing.
+        """
         return SolveRequest(
             kind=self.kind,
-            sums=self._entered_sums().copy(),
+            sums=np.asarray(sums, dtype=np.float64),
             noise_std=self._noise_arg,
             length_scale=self.length_scale,
             reference_direction=self.reference_direction,

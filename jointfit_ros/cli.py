@@ -40,7 +40,10 @@ joint has no identifiable estimate, or the outlier gate rejected more than
 10 % of a segment's frames (the one-line summary, the summary and the figure
 say why);
 1 bad input or configuration (one line on stderr, nothing written); 2 bad
-arguments; 130 interrupted.
+arguments; 130 interrupted. A failed consistency check across movement
+blocks ("skin artefact dominates", in the one-line summary and
+``summary.json``) leaves the status as it is: the estimate is still the best
+the recording gives, only its covariance understates how far it can be off.
 """
 
 from __future__ import annotations
@@ -173,6 +176,8 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
     verdict = "" if joint["identifiable"] else f"; NOT identifiable: {joint['reason']}"
     if joint.get("gate_warning"):
         verdict += f"; WARNING: {joint['gate_warning']}"
+    if joint.get("consistency_warning"):
+        verdict += f"; WARNING: {joint['consistency_warning']}"
     gated = joint["gated"]
     share = f"gated {gated['parent']['percent']:.2g} % parent, {gated['child']['percent']:.2g} % child"
     if gated.get("joint", {}).get("frames"):

@@ -50,6 +50,9 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 def _verdict(joint: Mapping[str, Any]) -> str:
     """The verdict in words, e.g. 'Identified: the estimate can be used.'."""
     status = joint["status"]
+    if status == "ok" and joint.get("consistency_warning"):
+        return (f"<p class='warn'>Identified and a calibration was written, but "
+                f"{_e(joint['consistency_warning'])}</p>")
     if status == "ok":
         return "<p class='ok'>Identified: the motion makes this joint identifiable; a calibration was written.</p>"
     if status == "outlier gate":

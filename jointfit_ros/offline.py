@@ -41,7 +41,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from jointfit_core.errors import InputError
+from jointfit_core.block_check import snapshots_consistency, window_consistency
+from jointfit_core.consistency import BlockConsistency
+from jointfit_core.errors import InputError, JointfitError
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.io import MarkerData, read_c3d, read_trc
 from jointfit_core.segments import PoseSumsCentre
@@ -128,6 +130,13 @@ class JointTrace:
     final : PoseSumsCentre or PoseSumsAxis or None
         The estimate from the whole window at the end of the recording; None
         when it could not be made (``runner.last_error`` says why).
+    snapshots : list of ndarray
+        The estimator's sums vector at every checkpoint (cumulative with
+        ``whole_recording``: the movement blocks of the consistency check).
+    consistency : BlockConsistency or None
+        The consistency check across movement blocks
+        (:mod:`jointfit_core.block_check`) of the final estimate; None
+        without a final estimate.
     """
 
     runner: JointRunner
@@ -135,6 +144,8 @@ class JointTrace:
     checkpoints: list[Checkpoint] = field(default_factory=list)
     output_stamps: list[float] = field(default_factory=list)
     residuals: list[float] = field(default_factory=list)
+    snapshots: list[FloatArray] = field(default_factory=list)
+    consistency: BlockConsistency | None = None
 
 
 @dataclass
@@ -425,8 +436,25 @@ def _marker_events(run: FitRun, data: MarkerData, step: int) -> Generator[int, N
 
 def _checkpoint(traces: list[JointTrace]) -> None:
     for t in traces:
+        snap = t.runner.estimator.sums_vector()
+        if snap is not None:
+            t.snapshots.append(snap)
         if t.runner.estimate(force=True) and t.runner.estimator.solution is not None:
             t.checkpoints.append(checkpoint_of(t.runner.counters["frames"], t.runner.estimator.solution))
+
+
+def _consistency(t: JointTrace, whole_recording: bool, run: FitRun) -> BlockConsistency | None:
+    """The check across movement blocks: from the checkpoints' snapshots (no forgetting) or the window's frames."""
+    est = t.runner.estimator
+    if t.final is None or est.frozen:
+        return None
+    units = run.units or run.cfg.units
+    try:
+        if whole_recording:
+            return snapshots_consistency(est, t.snapshots, rate_hz=run.rate or t.runner.input_rate(), units=units)
+        return window_consistency(est, units=units)
+    except JointfitError:  # a block's covariance not positive definite: no verdict (the summary says none)
+        return None
 
 
 def _traces(cfg: NodeConfig) -> list[JointTrace]:
@@ -548,6 +576,7 @@ def run_fit(
         t.final = t.runner.estimator.solution
         if t.final is not None and (not t.checkpoints or t.checkpoints[-1].frames != t.runner.counters["frames"]):
             t.checkpoints.append(checkpoint_of(t.runner.counters["frames"], t.final))
+        t.consistency = _consistency(t, whole_recording, run)
     if progress is not None:
         progress(done, total)
     if run.router is not None and run.router.recorded:

@@ -243,6 +243,8 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
         out["point_child"] = _list(sol.point_child)
         out["point_sd_child"] = _sd(sol.cov_point_child)
     out.update(_artefact_summary(est, sol))
+    out["consistency"] = consistency_summary(trace)
+    out["consistency_warning"] = out["consistency"]["message"] if out["consistency"]["consistent"] is False else ""
     geo = _geometry(run, trace, geos)
     if geo is not None:
         rms: dict[str, float | None] = {}
@@ -280,6 +282,14 @@ def _artefact_summary(est: Any, sol: PoseSumsCentre | PoseSumsAxis) -> dict[str,
         out["direction_sd_deg_child_statistical"] = _angle_sd_deg(stat.cov_direction_child)
         out["point_sd_child_statistical"] = _sd(stat.cov_point_child)
     return out
+
+
+def consistency_summary(trace: JointTrace) -> dict[str, Any]:
+    """The consistency check across movement blocks (:meth:`BlockConsistency.to_dict
+    <jointfit_core.consistency.BlockConsistency.to_dict>`), or why there is none."""
+    if trace.consistency is None:
+        return {"consistent": None, "message": "no consistency check: no block could be solved"}
+    return trace.consistency.to_dict()
 
 
 def gated_share(r: JointRunner) -> dict[str, dict[str, float]]:
@@ -326,7 +336,11 @@ def fit_summary(
         standard deviations, the rms residuals, the verdict, the counters and
         ``gated``: per segment the frames the outlier gate rejected (number
         and percent); above 10 % of a segment's frames ``status`` is
-        ``"outlier gate"`` and ``gate_warning`` says which.
+        ``"outlier gate"`` and ``gate_warning`` says which; ``consistency``:
+        the check across movement blocks (the blocks' estimates, chi-square,
+        dof, p-value, ratio, spread, verdict; see
+        :mod:`jointfit_core.consistency`), and ``consistency_warning`` its
+        "skin artefact dominates" message when it fails (empty otherwise).
     """
     return {
         "jointfit_version": version,
@@ -704,6 +718,8 @@ def _headline(trace: JointTrace, unit: str) -> str:
     warning = gate_warning(r)
     if warning:
         verdict += f"\nWARNING: {warning.split(': the estimate')[0]}"
+    if trace.consistency is not None and trace.consistency.warns:
+        verdict += f"\nWARNING: {trace.consistency.message.split(' (chi2')[0]}"
     if isinstance(sol, PoseSumsCentre):
         c, s = sol.centre_parent, _sd(sol.cov_parent)
         est = "centre (parent frame) = (" + ", ".join(f"{v:.4g}" for v in c) + ") +- (" + ", ".join(f"{v:.2g}" for v in s) + f") {unit}"

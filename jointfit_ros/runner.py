@@ -37,6 +37,7 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .activity import InputActivity
+from .consistency_status import ConsistencyMonitor
 from .params import JointConfig, NodeConfig, calibration_path
 from .progress import coverage_values, done_check, estimate_sd
 from .sync import StampMatcher
@@ -255,6 +256,8 @@ class JointRunner:
         self._from_row = node.marker_index(cfg.axis_from_marker) if cfg.axis_from_marker else -1
         self._cluster_rows = np.concatenate([self.parent_rows, self.child_rows])
         self.estimator = self._new_estimator()
+        #: The consistency check across movement blocks of the window (run at diagnostics time).
+        self.consistency = ConsistencyMonitor()
         self._load()
 
     # ------------------------------------------------------------------ set-up
@@ -707,6 +710,7 @@ class JointRunner:
         self.loaded_from = ""
         self.done = False
         self.auto_note = ""
+        self.consistency = ConsistencyMonitor()
 
     def freeze(self, on: bool) -> str:
         """Freeze (True) or thaw (False) the estimate; returns what happened in words.
@@ -837,6 +841,8 @@ class JointRunner:
             values[f"point sd ({u})"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
         values.update(coverage_values(est, sol)[1])
         values.update(_artefact_values(est, sol, u))
+        if sol.identifiable:
+            values.update(self.consistency.values(est, u))
         if self.cfg.target_sd > 0.0:
             values[f"target sd ({u if isinstance(sol, PoseSumsCentre) else 'deg'})"] = self.cfg.target_sd
         gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names(), est.joint_gated_frames)
@@ -853,6 +859,9 @@ class JointRunner:
             return Status(WARN, units, values)
         if self.sign_problem:
             return Status(WARN, f"hinge sign convention not honoured: {self.sign_problem}", values)
+        artefact = self.consistency.warning(est) if sol.identifiable else ""
+        if artefact:
+            return Status(WARN, artefact, values)
         done, progress = done_check(sol, self.cfg.target_sd, self.node.units)
         done = done and self._sign_fixed
         self.done = done
