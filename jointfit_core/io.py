@@ -25,6 +25,8 @@ __all__ = ["MarkerData", "read_c3d", "read_trc", "trc_text", "write_trc"]
 
 #: Metres per unit, for :meth:`MarkerData.to_units`.
 _METRES_PER_UNIT: dict[str, float] = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+#: The length units of marker files, in metres.
+METRES_PER_UNIT = _METRES_PER_UNIT
 
 _TRC_KEYS = (
     "DataRate",

@@ -36,9 +36,10 @@ for ROS, REP 103).
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 from xml.sax.saxutils import quoteattr
 
@@ -204,7 +205,9 @@ def _tree(joints: Sequence[UrdfJoint], links: Mapping[tuple[str, ...], str]) -> 
         )
 
 
-def urdf_from_calibrations(calibrations: Sequence[Mapping[str, Any]], robot_name: str = "subject") -> str:
+def urdf_from_calibrations(
+    calibrations: Sequence[Mapping[str, Any]], robot_name: str = "subject", metres_per_unit: float = 1.0
+) -> str:
     """The URDF text of the calibrated joints (see the module docstring).
 
     Parameters
@@ -213,6 +216,9 @@ def urdf_from_calibrations(calibrations: Sequence[Mapping[str, Any]], robot_name
         Saved calibrations (the node's ``~/save`` or ``jointfit fit``'s), one per joint.
     robot_name : str
         ``<robot name>``.
+    metres_per_unit : float
+        The calibrations' length unit in metres (URDF lengths are metres): 1 for the node's
+        (metres by REP 103), 0.001 for a fit of a C3D/TRC in mm.
 
     Raises
     ------
@@ -221,6 +227,15 @@ def urdf_from_calibrations(calibrations: Sequence[Mapping[str, Any]], robot_name
         tree, or two templates of the same markers that do not match.
     """
     joints = [urdf_joint_from_calibration(c, f"calibration {k + 1}") for k, c in enumerate(calibrations)]
+    if not (math.isfinite(metres_per_unit) and metres_per_unit > 0.0):
+        raise InputError(f"metres_per_unit: expected a number > 0, got {metres_per_unit!r}")
+    if metres_per_unit != 1.0:
+        m = metres_per_unit
+        joints = [
+            replace(j, template_parent=j.template_parent * m, template_child=j.template_child * m,
+                    point_parent=j.point_parent * m, point_child=j.point_child * m)
+            for j in joints
+        ]  # fmt: skip
     if not joints:
         raise InputError("no calibrations given")
     names = [j.name for j in joints]

@@ -28,6 +28,12 @@ the file's labels are the marker names), and writes to ``DIR`` (default
   covariances and standard deviations, residuals, verdicts and counters;
 * ``<joint>.png``: the report figure (:mod:`jointfit_ros.report`), unless
   ``--no-report``; ``report.html`` with ``--html``;
+* ``joint_angles.csv``: each joint's angles per frame (rad) and their rates, as
+  ``~/joint_states`` gives them live (:mod:`jointfit_ros.angles_export`), unless
+  ``--no-report`` without ``--export`` (the frames are not kept then);
+* ``subject.urdf``: the identified joints as a URDF in metres
+  (:func:`jointfit_core.urdf.urdf_from_calibrations`), when they form one tree
+  (otherwise ``summary.json`` says why under ``urdf``);
 * with ``--export``: ``joints.csv`` (the joints frame by frame in the world
   frame, with their sd), ``joints.trc`` / ``joints.c3d`` (the markers plus
   ``<joint>_JC``, ``<joint>_AX1``, ``<joint>_AX2``), see :mod:`jointfit_ros.export`.
@@ -61,7 +67,10 @@ from jointfit_core import __version__
 from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
+from jointfit_core.io import METRES_PER_UNIT
+from jointfit_core.urdf import urdf_from_calibrations
 
+from .angles_export import joint_angles_csv
 from .export import EXPORT_FORMATS, check_exportable, export_files
 from .html_report import html_page
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, read_marker_file, run_fit, with_file_marker_names
@@ -166,7 +175,7 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
         est = "centre_parent (" + ", ".join(f"{v:.4g}" for v in joint["centre_parent"]) + ")"
         est += f" sd <= {max(joint['sd_parent']):.2g} {unit}"
         if "sd_parent_statistical" in joint:
-            est += f" (statistical {max(joint['sd_parent_statistical']):.2g}, the rest soft-tissue artefact)"
+            est += f" (statistical {max(joint['sd_parent_statistical']):.2g})"
     else:
         est = "direction_parent (" + ", ".join(f"{v:.3f}" for v in joint["direction_parent"]) + ")"
         est += f" sd {joint['direction_sd_deg_parent']:.2g} deg"
@@ -247,6 +256,7 @@ def fit_main(argv: Sequence[str]) -> int:
         for trace, joint in zip(run.traces, summary["joints"], strict=True):
             if trace.final is not None and trace.final.identifiable:
                 data = trace.runner.estimator.to_dict()
+                data.update(trace.runner.identity())  # the joint's record, as ~/save writes it (jointfit urdf reads it)
                 # The estimate is the recording's; the window a node resumes with (after ~/freeze false)
                 # is the configured one, not the fit's no-forgetting sums.
                 data.update(dict.fromkeys(("window", "window_s", "half_life", "half_life_s")))
@@ -259,6 +269,17 @@ def fit_main(argv: Sequence[str]) -> int:
         summary["config"] = str(opts.config)
         summary["window"] = opts.window
         exported = export_files(run, opts.export) if opts.export else {}
+        if run.frames is not None and run.frames.shape[0]:
+            exported["joint_angles.csv"] = joint_angles_csv(run)
+        if calibrations:
+            try:
+                unit = length_unit(run)
+                metres = METRES_PER_UNIT.get(unit)
+                if metres is None:
+                    raise JointfitError(f"the length unit {unit!r} is not m, cm or mm (URDF lengths are metres)")
+                exported["subject.urdf"] = urdf_from_calibrations(list(calibrations.values()), metres_per_unit=metres)
+            except JointfitError as exc:  # e.g. joints that do not form one tree: the fit stands without it
+                summary["urdf"] = f"not written: {exc}"
         summary["exports"] = [str(out_dir / name) for name in exported]
 
         files: dict[str, bytes | str] = {f"{n}.calibration.yaml": calibration_text(d) for n, d in calibrations.items()}

@@ -221,6 +221,18 @@ def test_real_fixtures_report(
         # 5 deg limit, and covers the 0.4 deg between jointfit and SARA on this trial (bench/results/peers.md).
         stat, total = j["direction_sd_deg_parent_statistical"], j["direction_sd_deg_parent"]
         assert stat < 2.0 and 0.4 < stat <= total < 5.0, (stat, total)
+        # joint_angles.csv: the flexion about the fitted axis, over the range the summary reports
+        table = np.genfromtxt(out / "joint_angles.csv", delimiter=",", names=True)
+        flexion = np.degrees(table["right_knee"][np.isfinite(table["right_knee"])])
+        assert flexion.size > 0.9 * table.size
+        assert abs(np.ptp(flexion) - j["range_of_motion"]["flexion_range_deg"]) < 5.0
+        # subject.urdf: thigh and shank links, the knee a continuous joint, lengths in metres (the file is in mm)
+        yourdfpy = pytest.importorskip("yourdfpy")
+        robot = yourdfpy.URDF.load(str(out / "subject.urdf"))
+        assert robot.joint_map["right_knee"].type == "continuous"
+        assert {"RTHI", "RLEG"} <= set(robot.link_map)
+        assert all(np.abs(jt.origin[:3, 3]).max() < 1.0 for jt in robot.robot.joints if jt.origin is not None)
+        assert summary["exports"] and "urdf" not in summary
     if joint == "right_elbow":
         assert "not a hinge" in j["reason"] and "NOT identifiable" in stdout
 

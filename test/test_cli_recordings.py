@@ -143,7 +143,7 @@ def test_export_is_the_truth_frame_by_frame(tmp_path: Path, recording: tuple[Pat
     done = _cli("fit", trc, "--config", _params(tmp_path / "p.yaml", JOINTS), "--out", out, "--no-report",
                 "--export", "csv,trc,c3d")
     assert done.returncode == 0, done.stderr
-    assert "joints.csv, joints.trc, joints.c3d)" in done.stdout
+    assert "joints.csv, joints.trc, joints.c3d" in done.stdout
     table = np.genfromtxt(out / "joints.csv", delimiter=",", names=True)
     assert table.shape == (N_FRAMES,)
     np.testing.assert_array_equal(table["frame"], np.arange(1, N_FRAMES + 1))
