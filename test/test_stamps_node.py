@@ -22,6 +22,7 @@ pytest.importorskip("rclpy")
 
 from geometry_msgs.msg import PoseArray
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
 from test_node import RATE, _Client, _start_node, _stop
 
 from jointfit_ros.conversions import pose_array_bytes
@@ -228,3 +229,17 @@ def test_silence_is_stale_and_all_dropped_is_not_ok(rig: tuple[_Client, Any, Any
     assert client.spin_until(lambda: float(client.status("hip")["input rate (Hz)"]) == 0.0, 3.0)
     assert float(client.status("input")["input rate (Hz)"]) == 0.0
     assert proc.poll() is None
+
+
+def test_joint_states_carry_the_frozen_and_the_estimating_joint(rig: tuple[_Client, Any, Any]) -> None:
+    """~/joint_states from the node's own process: hip_x/_y/_z (frozen ball) and knee (estimating hinge), stamped."""
+    client, rigs, _ = rig
+    states: list[JointState] = []
+    client.node.create_subscription(JointState, "/jointfit/joint_states", states.append, 1000)
+    t = _warm_up(client, rigs)
+    _stream(client, rigs, t + PERIOD, 2.0)
+    assert client.spin_until(lambda: sum("knee" in m.name for m in states) > 20, 5.0), len(states)
+    assert {"hip_x", "hip_y", "hip_z", "knee"} <= {n for m in states for n in m.name}
+    knee = np.array([m.position[list(m.name).index("knee")] for m in states if "knee" in m.name])
+    assert np.isfinite(knee).all() and np.ptp(knee) > 0.1  # rad: the fake knee flexes over 2 s
+    assert all(_stamp_s(m) >= T0 for m in states)  # the input stamps
