@@ -32,8 +32,9 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
+from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -50,6 +51,7 @@ from .conversions import (
     pose_with_covariance_bytes,
     stamp_from_ns,
 )
+from .description import RobotDescription
 from .graph import graph_problems
 from .guard import CallbackGuard
 from .inputs import MessageRouter, Routed
@@ -133,6 +135,10 @@ class JointfitNode(Node):
         self._joint_state_pub = self.create_publisher(JointState, "~/joint_states", 10)
         self._rviz_pub = self.create_publisher(MarkerArray, "~/markers", 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._description = RobotDescription(self.cfg.units)
+        self._description_pub = self.create_publisher(
+            String, "~/robot_description", QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        )
 
         # Inputs.
         self.router = MessageRouter(self.cfg, self.runners.values(), clock=time.monotonic_ns)
@@ -368,7 +374,15 @@ class JointfitNode(Node):
         if markers.markers:
             self._rviz_pub.publish(markers)
 
+    def _publish_description(self) -> None:
+        """``~/robot_description`` when the frozen joints changed (:mod:`jointfit_ros.description`)."""
+        text = self._description.update(self.runners.values())
+        if text is not None:
+            self._description_pub.publish(String(data=text))
+            self.get_logger().info(f"robot description published ({self._description.joints} frozen joints)")
+
     def _on_diagnostics_timer(self) -> None:
+        self._publish_description()
         arr = DiagnosticArray()
         arr.header.stamp = stamp_from_ns(self._now_ns())
         node_values: dict[str, object] = {
@@ -376,6 +390,7 @@ class JointfitNode(Node):
             "malformed messages": self.counters["malformed"],
             "messages from another frame_id": self.counters["wrong_frame_id"],
             "messages with label problems": self.counters["label_problems"],
+            "robot description": self._description.problem or f"published ({self._description.joints} frozen joints)",
             "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
             "oversized clouds dropped": self.counters["oversized_clouds"],
             "input frame_id": self.router.frame_id,

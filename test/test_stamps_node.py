@@ -21,8 +21,9 @@ import pytest
 pytest.importorskip("rclpy")
 
 from geometry_msgs.msg import PoseArray
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 from test_node import RATE, _Client, _start_node, _stop
 
 from jointfit_ros.conversions import pose_array_bytes
@@ -243,3 +244,18 @@ def test_joint_states_carry_the_frozen_and_the_estimating_joint(rig: tuple[_Clie
     knee = np.array([m.position[list(m.name).index("knee")] for m in states if "knee" in m.name])
     assert np.isfinite(knee).all() and np.ptp(knee) > 0.1  # rad: the fake knee flexes over 2 s
     assert all(_stamp_s(m) >= T0 for m in states)  # the input stamps
+
+
+def test_robot_description_of_the_frozen_joint_is_latched(rig: tuple[_Client, Any, Any], tmp_path: Path) -> None:
+    """~/robot_description (transient local): the hip, frozen from its file at start, as a URDF a late subscriber gets."""
+    client, rigs, _ = rig
+    _warm_up(client, rigs)
+    texts: list[String] = []
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+    client.node.create_subscription(String, "/jointfit/robot_description", texts.append, latched)
+    assert client.spin_until(lambda: bool(texts), 10.0), client.status("input")
+    yourdfpy = pytest.importorskip("yourdfpy")
+    (tmp_path / "subject.urdf").write_text(texts[-1].data)
+    robot = yourdfpy.URDF.load(str(tmp_path / "subject.urdf"))
+    assert {"hip_x", "hip_y", "hip_z"} <= set(robot.joint_map) and "knee" not in robot.joint_map  # knee: estimating
+    assert client.status("input")["robot description"] == "published (1 frozen joints)"
