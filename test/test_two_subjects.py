@@ -12,7 +12,6 @@ own fake mocap's truth by stamp, then freezes A through ``jointfit call
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -28,6 +27,7 @@ rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, Vector3Stamped  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from test_node import _stop  # noqa: E402
 
 DOMAIN = str(200 + os.getpid() % 10)
 ENV = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": DOMAIN}
@@ -37,17 +37,6 @@ SUBJECTS = {"subject_a": 1, "subject_b": 2}  # namespace -> fake mocap seed
 
 def _start(args: list[str]) -> subprocess.Popen[bytes]:
     return subprocess.Popen([sys.executable, "-m", *args], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> str:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.stdout.read().decode(errors="replace") if proc.stdout else ""
 
 
 def _ns(stamp: Any) -> int:
