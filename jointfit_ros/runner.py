@@ -494,6 +494,8 @@ class JointRunner:
                     y = frames[..., rows, :]
                     # no marker is far from the mean when the segment's extent is within the limit (the usual
                     # frame: two reductions instead of the test below)
+                    if y.shape[-2] == 0 or not y.size:  # a segment of pose topics (no markers), or no frames
+                        continue
                     if bool((np.fmax.reduce(y, axis=-2) - np.fmin.reduce(y, axis=-2) <= scale).all()):
                         continue
                     seen = ~np.isnan(y[..., :1])
