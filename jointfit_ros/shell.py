@@ -12,7 +12,8 @@ one round and exits. ``--node`` given more than once, or ``--all`` (every
 jointfit node heard), watches several nodes (one per subject,
 ``/subject_a/jointfit``, ``/subject_b/jointfit``): each line then starts with
 its node's full name; ``--once`` waits for a round of every named node (with
-``--all``: until a node is heard a second time, or ``--timeout``). ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
+``--all``: until the first node heard is heard a third time and every node a second
+time, or ``--timeout``). ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
 ``<node>/freeze`` (std_srvs/SetBool, default true) or ``<node>/save``
 (std_srvs/Trigger) and prints the node's answer.
 
@@ -266,9 +267,11 @@ class StatusRounds:
             self.pending.append((node, lines))
 
     def complete(self) -> bool:
-        """One round of every node: each named node heard, or (every node) one of them heard twice."""
+        """One round of every node: each named node heard; or (every node) the first node heard heard three
+        times and every node heard twice (a node discovered a period later than another is still waited for)."""
         if self.every:
-            return any(n > 1 for n in self.heard.values())
+            counts = list(self.heard.values())
+            return bool(counts) and counts[0] > 2 and min(counts) > 1
         return all(node in self.first for node in self.nodes)
 
     def missing(self) -> list[str]:

@@ -133,8 +133,17 @@ def test_status_rounds_once_waits_for_every_named_node_and_names_them() -> None:
     every.add(a)
     every.add(b)
     assert not every.complete() and every.nodes == ["/subject_a/jointfit", "/subject_b/jointfit"]
-    every.add(a)  # a node heard again: every node with the same period has been heard
+    every.add(a)  # the first node heard again: b, discovered later, not yet twice
+    assert not every.complete()
+    every.add(b)
+    every.add(a)  # the first node three times, every node twice: a node a period late is waited for
     assert every.complete() and every.missing() == []
+    late = StatusRounds(None)
+    for arr in (b, b, a, b):  # b heard twice before a was first heard (the CI race): not yet a round
+        late.add(arr)
+        assert not late.complete()
+    late.add(a)
+    assert late.complete()
 
 
 def _node(tmp_path: Path, *ros_args: str) -> subprocess.CompletedProcess[str]:
