@@ -12,8 +12,9 @@ one round and exits. ``--node`` given more than once, or ``--all`` (every
 jointfit node heard), watches several nodes (one per subject,
 ``/subject_a/jointfit``, ``/subject_b/jointfit``): each line then starts with
 its node's full name; ``--once`` waits for a round of every named node (with
-``--all``: until the first node heard is heard a third time and every node a second
-time, or ``--timeout``). ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
+``--all``: until the first node heard is heard a third time, every node a second
+time and every ``/diagnostics`` publisher in the ROS graph heard or silent for 3 s,
+or ``--timeout``). ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
 ``<node>/freeze`` (std_srvs/SetBool, default true) or ``<node>/save``
 (std_srvs/Trigger) and prints the node's answer.
 
@@ -247,6 +248,8 @@ class StatusRounds:
         self.latest: dict[str, list[str]] = {}
         self.heard: dict[str, int] = {}  # rounds per node
         self.pending: list[tuple[str, list[str]]] = []  # new rounds not printed yet
+        self.publishers: dict[str, float] = {}  # /diagnostics publishers in the graph -> when first seen (s)
+        self.graph_changed = 0.0  # when a publisher last appeared (s)
 
     @property
     def many(self) -> bool:
@@ -266,13 +269,28 @@ class StatusRounds:
             self.heard[node] = self.heard.get(node, 0) + 1
             self.pending.append((node, lines))
 
-    def complete(self) -> bool:
+    def note_graph(self, publishers: Sequence[str], now: float) -> None:
+        """Take the full names of the nodes that publish ``/diagnostics`` now (from the ROS graph), at ``now`` s."""
+        for node in publishers:
+            if node not in self.publishers:
+                self.publishers[node] = now
+                self.graph_changed = now
+
+    def complete(self, now: float = 0.0) -> bool:
         """One round of every node: each named node heard; or (every node) the first node heard heard three
-        times and every node heard twice (a node discovered a period later than another is still waited for)."""
-        if self.every:
-            counts = list(self.heard.values())
-            return bool(counts) and counts[0] > 2 and min(counts) > 1
-        return all(node in self.first for node in self.nodes)
+        times, every node heard twice, and every ``/diagnostics`` publisher in the graph either heard or
+        silent for :attr:`QUIET` s since it appeared (not a jointfit node), the graph unchanged for
+        :attr:`SETTLE` s. A node discovered later than another is still waited for: DDS discovery of a
+        participant can take seconds on a loaded machine."""
+        if not self.every:
+            return all(node in self.first for node in self.nodes)
+        counts = list(self.heard.values())
+        if not counts or counts[0] <= 2 or min(counts) <= 1 or now - self.graph_changed < self.SETTLE:
+            return False
+        return all(node in self.heard or now - seen >= self.QUIET for node, seen in self.publishers.items())
+
+    QUIET = 3.0  # s a /diagnostics publisher may stay silent before it is taken for another kind of node
+    SETTLE = 1.0  # s without a new /diagnostics publisher before --all --once prints
 
     def missing(self) -> list[str]:
         """The named nodes not heard yet (every node: none heard at all, ``["any jointfit node"]``)."""
@@ -320,8 +338,18 @@ def status_main(argv: Sequence[str]) -> int:
         rounds.add(msg.status)
 
     session.node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    me = session.node.get_fully_qualified_name()
+
+    def round_done() -> bool:
+        now = time.monotonic()
+        if rounds.every:
+            infos = session.node.get_publishers_info_by_topic("/diagnostics")
+            rounds.note_graph([node_path(f"{i.node_namespace.rstrip('/')}/{i.node_name}") for i in infos], now)
+            rounds.publishers.pop(me, None)
+        return rounds.complete(now)
+
     try:
-        waited = session.spin_until(rounds.complete if opts.once else lambda: bool(rounds.pending), timeout)
+        waited = session.spin_until(round_done if opts.once else lambda: bool(rounds.pending), timeout)
         if not rounds.first or (opts.once and not waited and not opts.all):
             print(
                 f"jointfit status: no /diagnostics from {', '.join(rounds.missing())} within {timeout:g} s (is the "

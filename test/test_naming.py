@@ -132,18 +132,38 @@ def test_status_rounds_once_waits_for_every_named_node_and_names_them() -> None:
     every = StatusRounds(None)
     every.add(a)
     every.add(b)
-    assert not every.complete() and every.nodes == ["/subject_a/jointfit", "/subject_b/jointfit"]
+    assert not every.complete(now=10.0) and every.nodes == ["/subject_a/jointfit", "/subject_b/jointfit"]
     every.add(a)  # the first node heard again: b, discovered later, not yet twice
-    assert not every.complete()
+    assert not every.complete(now=10.0)
     every.add(b)
     every.add(a)  # the first node three times, every node twice: a node a period late is waited for
-    assert every.complete() and every.missing() == []
+    assert every.complete(now=10.0) and every.missing() == []
     late = StatusRounds(None)
     for arr in (b, b, a, b):  # b heard twice before a was first heard (the CI race): not yet a round
         late.add(arr)
-        assert not late.complete()
+        assert not late.complete(now=10.0)
     late.add(a)
-    assert late.complete()
+    assert late.complete(now=10.0)
+
+
+def test_status_rounds_every_node_waits_for_each_diagnostics_publisher_in_the_graph() -> None:
+    a, b = _statuses("/subject_a/jointfit", 0), _statuses("/subject_b/jointfit", 1)
+    every = StatusRounds(None)
+    every.note_graph(["/subject_a/jointfit", "/fake_mocap"], now=0.0)
+    for arr in (a, a, a):
+        every.add(arr)
+    assert not every.complete(now=0.5)  # the graph changed 0.5 s ago
+    assert every.complete(now=3.5)  # /fake_mocap silent for 3 s: not a jointfit node
+    every.note_graph(["/subject_a/jointfit", "/fake_mocap", "/subject_b/jointfit"], now=4.0)  # b discovered late
+    assert not every.complete(now=5.5)  # b in the graph, not heard yet: waited for
+    every.add(b)
+    every.add(b)
+    assert every.complete(now=5.5) and every.nodes == ["/subject_a/jointfit", "/subject_b/jointfit"]
+    silent = StatusRounds(None)
+    silent.note_graph(["/subject_a/jointfit", "/subject_b/jointfit"], now=0.0)
+    for arr in (a, a, a):
+        silent.add(arr)
+    assert not silent.complete(now=2.9) and silent.complete(now=3.0)  # b never speaks: printed without it
 
 
 def _node(tmp_path: Path, *ros_args: str) -> subprocess.CompletedProcess[str]:
