@@ -22,7 +22,7 @@ from jointfit_core.segments import PoseSumsCentre
 from .params import JointConfig
 
 if TYPE_CHECKING:
-    from .report import SegmentGeometry
+    from .geometry import SegmentGeometry
 
 __all__ = ["MM_PER_UNIT", "PELVIS_FRAME_TEXT", "anatomical_summary", "joint_rom", "rom_summary"]
 

@@ -287,7 +287,7 @@ _ANATOMICAL_PARAMS: tuple[ParamSpec, ...] = tuple(
         "string",
         "",
         f"Anatomical landmark ({what}): a name from marker_names, moving with the parent segment. {use} "
-        "Used by `jointfit fit` (summary, report); empty: none.",
+        "Used by `jointfit fit` (summary, report) and in the node's /diagnostics; empty: none.",
     )
     for role, what, use in (
         ("rasis", "right anterior superior iliac spine", _PELVIS_USE),

@@ -45,6 +45,7 @@ from jointfit_core.segments import PoseSumsCentre
 
 from .anatomy_report import anatomical_summary, joint_rom, rom_summary
 from .bag_blocks import can_fork
+from .geometry import SegmentGeometry, landmark_stat
 from .offline import FitRun, JointTrace
 from .runner import JointRunner
 
@@ -73,52 +74,6 @@ def _angle_sd_deg(cov_direction: FloatArray) -> float:
 def _list(a: FloatArray) -> list[Any]:
     out: list[Any] = np.asarray(a, dtype=np.float64).tolist()
     return out
-
-
-class SegmentGeometry:
-    """Per-frame poses of both segments from the kept frames and the final templates.
-
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Frame times, s from the first frame.
-    residual_parent, residual_child : ndarray, shape (N, Pp) and (N, Pc)
-        Distance of each marker from its posed template point, input units
-        (NaN where missing or not posed).
-    child_in_parent : ndarray, shape (N, Pc, 3)
-        Child markers in the parent segment frame, input units.
-    joint_residual : ndarray, shape (N,) or None
-        Per frame, the distance between the joint carried by the parent and
-        by the child with the final estimate (:attr:`JointOutput.residual
-        <jointfit_core.estimator.JointOutput.residual>`: ball, between the
-        two centres; hinge, of the parent's axis point from the child's axis
-        line), input units; NaN where a segment is not posed; None without a
-        final estimate.
-    R_parent_child : ndarray, shape (N, 3, 3) or None
-        Per frame, the child's orientation in the parent frame (NaN where a segment is not posed).
-    landmarks_parent : dict of str to (ndarray (3,), float, int)
-        Each ``<joint>.anatomical.*`` marker in the parent frame: the median over the posed frames where it is
-        visible, the rms distance of those frames from it (input units: how rigidly it moves with the parent)
-        and their number.
-    """
-
-    def __init__(
-        self,
-        t: FloatArray,
-        rp: FloatArray,
-        rc: FloatArray,
-        cip: FloatArray,
-        joint_residual: FloatArray | None = None,
-        R_parent_child: FloatArray | None = None,
-        landmarks_parent: dict[str, tuple[FloatArray, float, int]] | None = None,
-    ) -> None:
-        self.t = t
-        self.residual_parent = rp
-        self.residual_child = rc
-        self.child_in_parent = cip
-        self.joint_residual = joint_residual
-        self.R_parent_child = R_parent_child
-        self.landmarks_parent = landmarks_parent or {}
 
 
 def _residuals(markers: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -156,13 +111,9 @@ def _landmarks_parent(
     for _, marker in anatomical:
         if marker in out:
             continue
-        x = run.frames[:, run.cfg.marker_index(marker)]
-        local = np.einsum("nji,nj->ni", R_p, x - d_p)
-        local = local[np.isfinite(local).all(axis=1)]
-        if not local.shape[0]:
-            continue
-        med = np.median(local, axis=0)
-        out[marker] = (med, float(np.sqrt(np.mean(np.sum((local - med) ** 2, axis=1)))), int(local.shape[0]))
+        stat = landmark_stat(np.einsum("nji,nj->ni", R_p, run.frames[:, run.cfg.marker_index(marker)] - d_p))
+        if stat is not None:
+            out[marker] = stat
     return out
 
 

@@ -38,6 +38,7 @@ from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .activity import InputActivity
 from .consistency_status import ConsistencyMonitor
+from .live_geometry import LiveGeometry
 from .params import JointConfig, NodeConfig, calibration_path
 from .progress import coverage_values, done_check, estimate_sd
 from .sync import StampMatcher
@@ -258,6 +259,12 @@ class JointRunner:
         self.estimator = self._new_estimator()
         #: The consistency check across movement blocks of the window (run at diagnostics time).
         self.consistency = ConsistencyMonitor()
+        #: Sampled recent frames for the anatomical results and range of motion in ``/diagnostics``
+        #: (marker joints of the marker topic, not chained; else None).
+        self.live_geometry: LiveGeometry | None = None
+        if len(self.parent_rows) and len(self.child_rows) and not self.chained:
+            rows = {m: node.marker_index(m) for _, m in cfg.anatomical}
+            self.live_geometry = LiveGeometry(cfg, rows, self.parent_rows, self.child_rows)
         self._load()
 
     # ------------------------------------------------------------------ set-up
@@ -416,7 +423,10 @@ class JointRunner:
             child = self._with_chain(frame[self.child_rows], self.cfg.child_chain, chain or {})
             return self.process(stamp_ns, parent, child, frame)
         if self.matcher is None:
-            return self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
+            out = self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
+            if self.live_geometry is not None:
+                self.live_geometry.offer_one(stamp_ns * 1e-9, frame, self.estimator.templates)
+            return out
         if self.cfg.parent_markers:
             return self._paired(0, stamp_ns, frame[self.parent_rows], frame)
         return self._paired(1, stamp_ns, frame[self.child_rows], frame)
@@ -468,6 +478,8 @@ class JointRunner:
             return
         self.counters["frames"] += n - k
         self._stamps.extend(stamps[-_RATE_SAMPLES:].tolist())
+        if self.live_geometry is not None:
+            self.live_geometry.offer(np.asarray(stamps, dtype=np.float64), frames[k:], est.templates)
         if with_outputs:
             posed = (est.n_frames_seen - seen) - (est.dropped.get("parent_not_posed", 0) - not_posed)
             self.counters["outputs" if self._publishable() else "withheld_unidentified"] += posed
@@ -845,6 +857,8 @@ class JointRunner:
         values.update(_artefact_values(est, sol, u))
         if sol.identifiable:
             values.update(self.consistency.values(est, u))
+            if self.live_geometry is not None:
+                values.update(self.live_geometry.values(sol, u))
         if self.cfg.target_sd > 0.0:
             values[f"target sd ({u if isinstance(sol, PoseSumsCentre) else 'deg'})"] = self.cfg.target_sd
         gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names(), est.joint_gated_frames)

@@ -11,6 +11,7 @@ own fake mocap's truth by stamp, then freezes A through ``jointfit call
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -182,6 +183,8 @@ def test_two_subjects_in_two_namespaces(listener: _Listener, tmp_path: Path) -> 
             assert len(est_o) >= 100 and np.min(np.linalg.norm(est_o - truth_o, axis=1)) > 0.03, (ns, len(est_o))
             st = listener.status(f"/{ns}/jointfit", "hip")
             assert st["name"] == f"{ns}/jointfit: hip" and st["frozen"] == "False", st
+            rom = [v for k, v in st.items() if k.startswith("range of motion (deg, last ")]  # live_geometry
+            assert len(rom) == 1 and len(json.loads(rom[0])) == 3, st
 
         # jointfit call freeze --node /subject_a/jointfit freezes A's joints only.
         code, out, err = _cli(listener, "call", "freeze", "--node", "/subject_a/jointfit", "--timeout", "20")
