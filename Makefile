@@ -27,8 +27,12 @@ lint: venv
 	$(BIN)/ruff check jointfit_core jointfit_ros test bench
 	$(BIN)/mypy jointfit_core jointfit_ros
 
+# Two passes: the tests that start no live node on both cores (one worker per file: each file's ROS
+# domains stay in one process), then the live-node tests (`ros` marker) alone, with the machine to
+# themselves as a lab's node would have it.
 test: venv lint
-	$(ROS_ENV) $(BIN)/python -m pytest
+	$(ROS_ENV) $(BIN)/python -m pytest -m "not ros and not attack" -n 2 --dist loadfile
+	$(ROS_ENV) $(BIN)/python -m pytest -m "ros and not attack"
 
 # Long adversarial runs against a live node (e.g. hypothesis over every parameter), not part of make test.
 attack: venv
