@@ -17,7 +17,9 @@ same 56-marker stream, so only the joint count changes. Shared segments are repe
 **path**: the node's whole per-message path, in this process, without rclpy: what
 ``JointfitNode._on_markers`` runs per message: :meth:`MessageRouter.markers` (parse, stamp checks,
 route, every joint's :class:`~jointfit_ros.runner.JointRunner` and ``OnlineJoint.update``), then
-each output encoded as CDR (``pose_with_covariance_bytes`` / ``axis_pose_bytes``). Solves are not
+each output encoded as CDR (``pose_with_covariance_bytes`` / ``axis_pose_bytes``), then the
+frame's ``~/segments`` (:class:`~jointfit_ros.segment_output.SegmentOutput`: the segment poses
+gathered and encoded; its share is given apart). Solves are not
 in it (the node runs them in its worker process): every 50 messages one joint is solved in turn,
 outside the timed spans. Before timing, ``WARM`` frames build the templates and the gate's history
 and every joint is solved, so that every frame of the timed part has an output per joint
@@ -54,6 +56,7 @@ from jointfit_ros.inputs import MessageRouter
 from jointfit_ros.params import NodeConfig, node_config
 from jointfit_ros.raw import pose_array_bytes
 from jointfit_ros.runner import JointRunner
+from jointfit_ros.segment_output import SegmentOutput
 from jointfit_ros.skeleton_params import skeleton_parameters
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -71,8 +74,10 @@ class _Path:
     def __init__(self, cfg: NodeConfig, warm: Sequence[bytes]) -> None:
         self.runners = [JointRunner(j, cfg) for j in cfg.joints]
         self.router = MessageRouter(cfg, self.runners)
+        self.segments = SegmentOutput(self.runners)
         self.turn = 0
         self.outputs = 0
+        self.segment_cpu = 0.0
         for raw in warm:
             self.router.markers(raw)
         for r in self.runners:
@@ -96,6 +101,10 @@ class _Path:
                             routed.stamp_ns, routed.frame_id, out.position, out.direction, out.cov, out.cov_direction
                         )
                     self.outputs += 1
+                c1 = time.process_time()
+                R, t = self.segments.poses()  # ~/segments, as the node encodes it after the joints
+                self.segments.pose_array(T0, "world", R, t)
+                self.segment_cpu += time.process_time() - c1
             total += time.process_time() - c0
             self.runners[self.turn].estimate(force=True)
             self.turn = (self.turn + 1) % len(self.runners)
@@ -152,13 +161,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     base_us = 1e6 * float(np.median(base))
     med = {k: 1e6 * float(np.median(cpu[k])) for k in COUNTS}
     slope, intercept = np.polyfit(np.array(COUNTS, dtype=float), [med[k] for k in COUNTS], 1)
+    seg_us = {k: 1e6 * paths[k].segment_cpu / (frames_per_round * rounds) for k in COUNTS}
     rows = [
-        [f"{k}", f"{med[k]:.0f}", f"{med[k] / k:.0f}", f"{med[k] / base_us:.1f}",
-         f"{100.0 * paths[k].outputs / (k * frames_per_round * rounds):.0f}"]
+        [f"{k}", f"{len(paths[k].segments.names)}", f"{med[k]:.0f}", f"{med[k] / k:.0f}", f"{med[k] / base_us:.1f}",
+         f"{seg_us[k]:.0f}", f"{100.0 * paths[k].outputs / (k * frames_per_round * rounds):.0f}"]
         for k in COUNTS
     ]  # fmt: skip
     table = markdown_table(
-        ["joints", "CPU per frame (us)", "per joint (us)", "path / baseline", "frames with output (%)"], rows
+        ["joints", "segments", "CPU per frame (us)", "per joint (us)", "path / baseline", "of which ~/segments (us)",
+         "frames with output (%)"],
+        rows,
     )
     text = "\n".join([
         "# Per-message CPU of the node's path on the fake skeleton (issue 16: before the redesign)",

@@ -1019,6 +1019,12 @@ class OnlineJoint:
         self._last_stamp: float | None = None
         self.dropped: dict[str, int] = {}
         self.n_frames_seen = 0
+        #: The latest :meth:`update` frame's segment poses, after the gate: ``(R (2, 3, 3), d (2, 3),
+        #: posed (2,))`` in the templates' frames (``world = R @ local + d``; a segment not posed has
+        #: ``posed`` False), or None (no templates yet, the frame dropped, the joint test failed, or
+        #: the frame came in a block). The skeleton's segment outputs read it
+        #: (:mod:`jointfit_core.segment_frames`).
+        self.frame_poses: tuple[FloatArray, FloatArray, tuple[bool, bool]] | None = None
         self._contribution = np.zeros(_N_SUMS)
         self._contribution[0] = 1.0
         # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
@@ -1181,6 +1187,7 @@ class OnlineJoint:
         visible markers (``parent_not_posed``, ``child_not_posed``), and
         while frozen (not counted: expected).
         """
+        self.frame_poses = None
         if self.templates_ready and self._fast_fill(parent, child):
             return self._after_fill(stamp)
         yp = check_frame(parent, None if self.n_markers is None else self.n_markers[0], name="parent")
@@ -1268,6 +1275,12 @@ class OnlineJoint:
         While frozen, frames are counted and dropped as :meth:`update` does
         and nothing enters the statistics.
         """
+        try:
+            self._update_many(parent, child, stamps)
+        finally:
+            self.frame_poses = None  # a block gives no frame's poses
+
+    def _update_many(self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None) -> None:
         yp, yc, st = self._check_block(parent, child, stamps)
         n = yp.shape[0]
         k = 0
@@ -1957,6 +1970,7 @@ class OnlineJoint:
         if missing is not self._none_missing:
             Y[missing] = 0.0  # _poses needs zeros where a marker is missing
         R, d, ss = _poses(Y, ps)
+        self.frame_poses = (R, d, (ps.parent is not None, ps.child is not None))  # a refit below replaces it
         gate_var = self._gate_var()
         if gate_var is not None:
             local, jumps, fails = self._shape_tests(ps, R, d, ss, gate_var, frame_no, refit)
@@ -2005,6 +2019,7 @@ class OnlineJoint:
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
             if self._joint_fails(R, d, frame_no, stamp):
                 self._prev_in = False
+                self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
         if ps.parent is not None and ps.child is not None and not self._frozen:
             c = self._contribution

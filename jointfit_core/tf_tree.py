@@ -11,9 +11,9 @@ One frame's tree from the segment poses and the joint estimates (issue 16, item 
   not change, so it is *static* (``/tf_static``, sent once); an estimating joint's is
   dynamic (re-estimated).
 
-A library function for now: the node does not broadcast it yet (``jointfit_ros.tf_output``
-turns the transforms into ``geometry_msgs/TransformStamped`` and broadcasts them when
-``tf2_ros`` imports).
+The node builds it per marker frame from its segments (:mod:`jointfit_core.segment_frames`,
+``jointfit_ros.segment_output``); ``jointfit_ros.tf_output`` turns the transforms into
+``geometry_msgs/TransformStamped`` and broadcasts them when ``tf2_ros`` imports.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from .errors import InputError
 
@@ -90,13 +89,34 @@ class TfTree:
         return self.static + self.dynamic
 
 
+def _k_of_r() -> tuple[FloatArray, FloatArray]:
+    """The linear map (9, 16) and the constant (16,) of ``K = 4 q q^T`` (x, y, z, w) from a rotation matrix."""
+    L = np.zeros((3, 3, 4, 4))
+    sign = {(0, 0): (1, -1, -1, 1), (1, 1): (-1, 1, -1, 1), (2, 2): (-1, -1, 1, 1)}
+    for (i, _), signs in sign.items():
+        for k, sg in enumerate(signs):
+            L[i, i, k, k] = sg
+    for (i, j), (a, b) in {(0, 1): (0, 1), (1, 0): (0, 1), (0, 2): (0, 2), (2, 0): (0, 2), (1, 2): (1, 2), (2, 1): (1, 2)}.items():
+        L[i, j, a, b] = L[i, j, b, a] = 1.0  # x y: m01 + m10, x z: m02 + m20, y z: m12 + m21
+    for (i, j), (a, sg) in {(2, 1): (0, 1), (1, 2): (0, -1), (0, 2): (1, 1), (2, 0): (1, -1), (1, 0): (2, 1), (0, 1): (2, -1)}.items():
+        L[i, j, a, 3] = L[i, j, 3, a] = sg  # w x: m21 - m12, w y: m02 - m20, w z: m10 - m01
+    return L.reshape(9, 16), np.eye(4).ravel()
+
+
+_K_OF_R, _K_ONE = _k_of_r()
+
+
 def quaternions_from_matrices(R: ArrayLike) -> FloatArray:
     """Unit quaternions (x, y, z, w), w >= 0, of rotation matrices, shape (..., 3, 3) -> (..., 4)."""
     mats = np.asarray(R, dtype=np.float64)
     if mats.shape[-2:] != (3, 3):
         raise InputError(f"R: expected rotation matrices of shape (..., 3, 3), got shape {mats.shape}")
-    q = Rotation.from_matrix(mats.reshape(-1, 3, 3)).as_quat()
-    q *= np.where(q[:, 3:] < 0.0, -1.0, 1.0)
+    # K = 4 q q^T, linear in the matrix (Shepperd 1978): the row of its largest diagonal entry is q scaled by
+    # its largest component, so it is divided by nothing small
+    K = mats.reshape(-1, 9) @ _K_OF_R + _K_ONE  # (n, 16)
+    k = np.argmax(K[:, ::5], axis=1)  # the diagonal
+    q = K.reshape(-1, 4, 4)[np.arange(K.shape[0]), k]
+    q *= (np.where(q[:, 3] < 0.0, -1.0, 1.0) / np.sqrt(np.sum(q * q, axis=1)))[:, None]
     out: FloatArray = q.reshape(*mats.shape[:-2], 4)
     return out
 

@@ -49,7 +49,10 @@ from scipy.spatial.transform import Rotation
 
 from .errors import InputError
 
-__all__ = ["UrdfJoint", "urdf_joint_from_calibration", "urdf_from_calibrations", "joint_state_names", "link_names"]
+__all__ = [
+    "UrdfJoint", "urdf_joint_from_calibration", "urdf_from_calibrations", "joint_state_names", "link_names",
+    "segment_names", "kabsch",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -131,7 +134,7 @@ def urdf_joint_from_calibration(data: Mapping[str, Any], source: str = "calibrat
     return UrdfJoint(name, kind, pm, cm, tp, tc, pp.astype(np.float64), pc.astype(np.float64), direction)
 
 
-def _kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+def kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
     """``y ~ R x + d`` (points (P, 3))."""
     xb, yb = x.mean(axis=0), y.mean(axis=0)
     U, _, Vt = np.linalg.svd((x - xb).T @ (y - yb))
@@ -148,18 +151,23 @@ def _prefix(markers: tuple[str, ...]) -> str:
     return re.sub(r"[\d_\-.:]+$", "", first[:k])
 
 
-def link_names(joints: Sequence[UrdfJoint]) -> dict[tuple[str, ...], str]:
-    """Marker list -> link name (see the module docstring), in order of first appearance."""
+def segment_names(marker_lists: Sequence[tuple[str, ...]]) -> dict[tuple[str, ...], str]:
+    """Marker list -> segment name, in order of first appearance: the markers' common prefix without
+    trailing digits and ``_`` (``RTHI1..4`` -> ``RTHI``), ``segment_<k>`` when there is none or it is taken."""
     out: dict[tuple[str, ...], str] = {}
-    for j in joints:
-        for markers in (j.parent_markers, j.child_markers):
-            if markers in out:
-                continue
-            name = _prefix(markers)
-            if not re.fullmatch(r"[A-Za-z_][\w]*", name) or name in out.values():
-                name = f"segment_{len(out)}"
-            out[markers] = name
+    for markers in marker_lists:
+        if markers in out:
+            continue
+        name = _prefix(markers)
+        if not re.fullmatch(r"[A-Za-z_][\w]*", name) or name in out.values():
+            name = f"segment_{len(out)}"
+        out[markers] = name
     return out
+
+
+def link_names(joints: Sequence[UrdfJoint]) -> dict[tuple[str, ...], str]:
+    """Marker list -> link name (see the module docstring, :func:`segment_names`), in order of first appearance."""
+    return segment_names([m for j in joints for m in (j.parent_markers, j.child_markers)])
 
 
 def _origin(R: FloatArray, xyz: FloatArray) -> str:
@@ -250,7 +258,7 @@ def urdf_from_calibrations(
     body = [_link_xml(links[m], frame[m]) for m in links]
     for j in joints:
         # the joint's parent template frame in the parent link frame: x_link = R x_tpl + d
-        R, d = _kabsch(frame[j.parent_markers], j.template_parent)
+        R, d = kabsch(frame[j.parent_markers], j.template_parent)
         misfit = np.sqrt(((j.template_parent @ R.T + d - frame[j.parent_markers]) ** 2).sum(axis=1).mean())
         radius = np.sqrt((j.template_parent**2).sum(axis=1).mean())
         if misfit > TEMPLATE_MATCH_RTOL * radius:

@@ -273,6 +273,8 @@ class MessageRouter:
         }
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
+        #: The stamp (ns) of the frame the latest :meth:`markers` gave to the joints; None when it gave none.
+        self.routed_stamp_ns: int | None = None
         self._last_frame: FloatArray | None = None
         self.recorded: list[tuple[int, FloatArray]] | None = None
         self.timeline = Timeline(round(cfg.max_stamp_jump * 1e9), clock=clock, counters=self.counters)
@@ -555,6 +557,7 @@ class MessageRouter:
     def markers(self, raw: bytes) -> list[Routed]:
         """A message of ``marker_topic``: the outputs of the joints it produced one for."""
         self.counters["messages"] += 1
+        self.routed_stamp_ns = None
         got = self.frame(raw)
         if got is None:
             _note_dropped(self.marker_runners, 1)
@@ -564,6 +567,7 @@ class MessageRouter:
         if t is None:
             return []
         self.frame_id = frame_id
+        self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
         return route_frame(self.marker_runners, stamp_ns, frame_id, frame, time_ns=t)

@@ -70,8 +70,10 @@ from .params import (
     range_text,
 )
 from .runner import ERROR, OK, STALE, WARN, JointRunner
+from .segment_output import SegmentOutput
 from .solver_process import SolverProcess
 from .status_log import StatusLog
+from .tf_output import TfOutput
 
 __all__ = ["JointfitNode", "main"]
 
@@ -136,6 +138,11 @@ class JointfitNode(Node):
         self._rviz_pub = self.create_publisher(MarkerArray, "~/markers", 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._description = RobotDescription(self.cfg.units)
+        self._segments = SegmentOutput(list(self.runners.values()))
+        self._segments_pub = self.create_publisher(PoseArray, "~/segments", 10) if self._segments.names else None
+        self._tf = TfOutput(self) if self._segments.names else None
+        if self._tf is not None and self._tf.problem:
+            self.get_logger().info(self._tf.problem)
         self._description_pub = self.create_publisher(
             String, "~/robot_description", QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         )
@@ -268,7 +275,18 @@ class JointfitNode(Node):
         for r in routed:
             self._publish_world(r)
         self._publish_joint_states(routed)
+        if self.router.routed_stamp_ns is not None and self._segments_pub is not None:
+            self._publish_segments(self.router.routed_stamp_ns)
         self._report_problem()
+
+    def _publish_segments(self, stamp_ns: int) -> None:
+        """``~/segments`` of the frame just routed and, when tf2_ros imports, its TF tree."""
+        assert self._segments_pub is not None
+        R, t = self._segments.poses()
+        frame = self.cfg.world_frame or self.router.frame_id
+        self._segments_pub.publish(self._segments.pose_array(stamp_ns, frame, R, t))
+        if self._tf is not None and self._tf.available:
+            self._tf.send(self._segments.tree(R, t, frame), stamp_ns)
 
     def _pose_callback(self, topic: str) -> Callable[[bytes], None]:
         def callback(raw: bytes) -> None:
@@ -394,6 +412,8 @@ class JointfitNode(Node):
             "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
             "oversized clouds dropped": self.counters["oversized_clouds"],
             "input frame_id": self.router.frame_id,
+            "segments (~/segments order)": ", ".join(self._segments.names) or "none (no marker joints)",
+            "TF": "no marker joints" if self._tf is None else self._tf.problem or "broadcast (/tf, /tf_static)",
             "estimates solved in": "a worker process" if self._solver is not None else "the executor thread",
         }
         problems = ("malformed", "label_problems", "wrong_frame_id", "oversized_clouds")

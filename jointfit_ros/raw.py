@@ -1080,7 +1080,9 @@ def _pad(out: bytearray, n: int) -> None:
     out += b"\x00" * ((-(len(out) - 4)) % n)
 
 
-def pose_array_bytes(stamp_ns: int, frame_id: str, points: ArrayLike, *, big_endian: bool = False) -> bytes:
+def pose_array_bytes(
+    stamp_ns: int, frame_id: str, points: ArrayLike, *, orientations: ArrayLike | None = None, big_endian: bool = False
+) -> bytes:
     """CDR bytes of a ``geometry_msgs/PoseArray`` whose positions are ``points``.
 
     Parameters
@@ -1090,7 +1092,9 @@ def pose_array_bytes(stamp_ns: int, frame_id: str, points: ArrayLike, *, big_end
     frame_id : str
         ``header.frame_id``.
     points : array_like, shape (N, 3)
-        Positions (NaN allowed); orientations are the identity (0, 0, 0, 1).
+        Positions (NaN allowed).
+    orientations : array_like, shape (N, 4), optional
+        Quaternions (x, y, z, w); default the identity (0, 0, 0, 1).
     big_endian : bool
         Write big-endian CDR (for tests of readers); ROS middlewares on
         little-endian hosts send little-endian. Default False.
@@ -1110,7 +1114,13 @@ def pose_array_bytes(stamp_ns: int, frame_id: str, points: ArrayLike, *, big_end
         _pad(out, 8)
         poses = np.zeros((n, 7), dtype=prefix + "f8")
         poses[:, :3] = pts
-        poses[:, 6] = 1.0
+        if orientations is None:
+            poses[:, 6] = 1.0
+        else:
+            q = np.asarray(orientations, dtype=np.float64)
+            if q.shape != (n, 4):
+                raise ConversionError(f"orientations: expected shape ({n}, 4), got {q.shape}")
+            poses[:, 3:] = q
         out += poses.tobytes()
     return bytes(out)
 

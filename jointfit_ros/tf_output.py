@@ -4,7 +4,8 @@
 development environment: :class:`TfOutput` imports it inside a try and, when it is
 missing, says so once (:attr:`TfOutput.problem`, for the log and ``/diagnostics``)
 and broadcasts nothing. The conversion :func:`transform_stamped` needs only
-``geometry_msgs``. A library for now: the node does not broadcast the tree yet.
+``geometry_msgs``. The node broadcasts each marker frame's tree of
+:class:`~jointfit_ros.segment_output.SegmentOutput` through it.
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ a saved calibration must be loaded (frozen) after a restart.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -27,6 +28,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
 from std_srvs.srv import SetBool, Trigger
 
 from jointfit_ros.conversions import pose_array_bytes
@@ -82,6 +84,8 @@ class _Client:
         self.node.create_subscription(PoseWithCovarianceStamped, "hip/centre", self.hip.append, 1000)
         self.node.create_subscription(PoseWithCovarianceStamped, "knee/axis", self.knee.append, 1000)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 100)
+        self.segments: list[PoseArray] = []
+        self.node.create_subscription(PoseArray, "/jointfit/segments", self.segments.append, 1000)
         self.clients = {
             "freeze": self.node.create_client(SetBool, "/jointfit/freeze"),
             "save": self.node.create_client(Trigger, "/jointfit/save"),
@@ -174,6 +178,10 @@ def _hip_errors(client: _Client, rigs: Any, t0: float, last: int = 200) -> tuple
     return float(np.median(err)), float(np.mean(e3)), float(np.median(sd))
 
 
+def _ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
 def test_node_end_to_end(client: _Client, tmp_path: Path) -> None:
     calibration = tmp_path / "hip.yaml"
     params = _params(tmp_path / "params.yaml", calibration)
@@ -209,6 +217,31 @@ def test_node_end_to_end(client: _Client, tmp_path: Path) -> None:
         assert client.call("freeze", SetBool.Request(data=True)).success
         saved = client.call("save", Trigger.Request())
         assert saved.success and calibration.exists(), saved.message
+
+        # ~/segments: every segment's pose per frame; the frozen hip centre carried by the pelvis pose is the
+        # published centre of the same frame.
+        _stream(client, rigs, rng, t0, int(RATE), 10.0)
+        assert client.spin_until(lambda: len(client.hip) > n_outputs + 250, 10.0)
+        inp = client.status("input")
+        assert inp["segments (~/segments order)"] == "PELV, THIGH, FEMUR, SHANK", inp
+        assert inp["TF"].startswith("tf2_ros is not installed") or inp["TF"].startswith("broadcast"), inp
+        centre = np.array(json.loads(client.status("hip")["centre_parent (m)"]))
+        by_stamp = {_ns(m.header.stamp): m for m in client.segments}
+        matched = 0
+        for out in client.hip[-80:]:
+            seg = by_stamp.get(_ns(out.header.stamp))
+            if seg is None:
+                continue
+            assert len(seg.poses) == 4 and seg.header.frame_id == "world"
+            pelvis = seg.poses[0]
+            q = [pelvis.orientation.x, pelvis.orientation.y, pelvis.orientation.z, pelvis.orientation.w]
+            t = np.array([pelvis.position.x, pelvis.position.y, pelvis.position.z])
+            carried = Rotation.from_quat(q).as_matrix() @ centre + t
+            p = out.pose.pose.position
+            np.testing.assert_allclose(carried, [p.x, p.y, p.z], atol=2e-6)  # the diagnostics round to 1e-6 m
+            matched += 1
+        assert matched > 40, matched
+        client.spin_until(lambda: False, 1.0)  # the last outputs in, before the restart below counts its own
     finally:
         log = _stop(proc)
     assert "Traceback" not in log, log

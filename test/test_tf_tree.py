@@ -86,7 +86,12 @@ def test_unposed_segments_have_no_world_transform_and_bad_input_is_refused() -> 
 def test_quaternions() -> None:
     rng = np.random.default_rng(0)
     R = Rotation.random(50, random_state=rng).as_matrix()
+    # half turns (w = 0: each of x, y, z the largest component in turn, and a tilted axis), near-identity
+    half = Rotation.from_rotvec(np.pi * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.6, 0.8, 0.0]])).as_matrix()
+    R = np.concatenate([R, half, Rotation.from_rotvec([[1e-9, 0.0, 0.0]]).as_matrix(), np.eye(3)[None]])
     q = quaternions_from_matrices(R)
+    ref = Rotation.from_matrix(R).as_quat()
+    np.testing.assert_allclose(np.abs(np.sum(q * ref, axis=1)), 1.0, atol=1e-12)  # the same rotations, q or -q
     assert (q[:, 3] >= 0.0).all()
     np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), R, atol=1e-12)
     d = rng.normal(size=(50, 3))

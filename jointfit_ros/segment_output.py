@@ -1,0 +1,87 @@
+"""The node's segment outputs: ``~/segments`` (every segment's world pose per marker frame) and the TF tree.
+
+ROS-free apart from the message bytes. :class:`SegmentOutput` gathers, after
+a marker frame went through the joints, each joint's segment poses
+(:attr:`OnlineJoint.frame_poses <jointfit_core.estimator.OnlineJoint.frame_poses>`),
+puts every segment in its one frame (:class:`~jointfit_core.segment_frames.SegmentFrames`)
+and encodes them as a ``geometry_msgs/PoseArray``: one pose per segment in
+:attr:`SegmentOutput.names` order, the segment frame's origin (its owner
+template's marker centroid) and orientation in the world frame; a segment no
+joint could pose in this frame has a NaN position and the zero quaternion.
+:meth:`SegmentOutput.tree` gives the frame's TF tree (world -> segment,
+segment -> joint; frozen joints static) for :class:`~jointfit_ros.tf_output.TfOutput`.
+
+Only marker joints of the marker topic take part (not the joints of pose
+topics, whose poses their own topics carry, nor chained joints).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jointfit_core.segment_frames import SegmentFrames, SegmentJoint
+from jointfit_core.tf_tree import JointFrame, TfTree, quaternions_from_matrices, tf_tree
+
+from .raw import pose_array_bytes
+from .runner import JointRunner
+
+__all__ = ["SegmentOutput"]
+
+FloatArray = NDArray[np.float64]
+
+
+class SegmentOutput:
+    """The segments of the node's marker joints and their per-frame poses.
+
+    Parameters
+    ----------
+    runners : sequence of JointRunner
+        The node's joints; those of pose topics and chained ones are left out.
+    """
+
+    def __init__(self, runners: Sequence[JointRunner]) -> None:
+        self.runners = [r for r in runners if r.live_geometry is not None]
+        self.frames = SegmentFrames(
+            [SegmentJoint(r.cfg.name, r.cfg.parent_markers, r.cfg.child_markers) for r in self.runners]
+        )
+        self._joints: list[JointFrame] = []
+        self._joints_key: tuple[object, ...] = ()
+
+    @property
+    def names(self) -> list[str]:
+        """Segment names, in the order of the poses."""
+        return self.frames.names
+
+    def _templates(self) -> list[tuple[FloatArray | None, FloatArray | None]]:
+        return [r.estimator.templates for r in self.runners]
+
+    def poses(self) -> tuple[FloatArray, FloatArray]:
+        """This frame's segment poses: ``R (S, 3, 3)``, ``t (S, 3)`` (world, input units; NaN where not posed)."""
+        return self.frames.poses([r.estimator.frame_poses for r in self.runners], self._templates())
+
+    def pose_array(self, stamp_ns: int, frame_id: str, R: FloatArray, t: FloatArray) -> bytes:
+        """CDR bytes of ``~/segments`` for poses ``R``, ``t``."""
+        posed = np.isfinite(R).all(axis=(1, 2))
+        q = np.zeros((len(self.names), 4))
+        if posed.any():
+            q[posed] = quaternions_from_matrices(R[posed])
+        return pose_array_bytes(stamp_ns, frame_id, t, orientations=q)
+
+    def joint_frames(self) -> list[JointFrame]:
+        """Every joint with an identifiable estimate in its parent segment's frame (recomputed when one changes)."""
+        sols = [r.estimator.solution for r in self.runners]
+        sols = [s if s is not None and s.identifiable else None for s in sols]
+        frozen = [r.estimator.frozen for r in self.runners]
+        key = (*(id(s) for s in sols), *frozen, *(id(tp) for r in self.runners for tp in r.estimator.templates))
+        if key != self._joints_key:
+            self._joints = self.frames.joint_frames(sols, self._templates(), frozen)
+            self._joints_key = key
+        return self._joints
+
+    def tree(self, R: FloatArray, t: FloatArray, world_frame: str) -> TfTree:
+        """The frame's TF tree: ``world_frame -> segment`` for the posed segments, ``segment -> joint`` (static
+        when frozen)."""
+        return tf_tree(world_frame, self.names, R, t, self.joint_frames())
