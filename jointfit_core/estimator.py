@@ -30,6 +30,7 @@ from .artefact_sums import (
     artefact_from_sums,
     ball_parameters,
     feature_sums,
+    feature_sums_one,
     hinge_parameters,
 )
 from .calibration import fit_from_dict, fit_to_dict
@@ -2034,7 +2035,7 @@ class OnlineJoint:
             c[_SS : _SS + 4 : 2] = ss
             c[_SS + 1 : _SS + 4 : 2] = ps.dof
             if self._skin:
-                c[_FS] = feature_sums(z[None, :, :3], z[None, :, 3])[0]
+                c[_FS] = feature_sums_one(z)
             # The lag pair (previous frame in the statistics, this one), stored with this frame.
             if self._prev_in:
                 c[_LAG] = 1.0

@@ -30,6 +30,7 @@ __all__ = ["LiveGeometry"]
 
 FloatArray = NDArray[np.float64]
 Templates = tuple[FloatArray | None, FloatArray | None]
+FramePoses = tuple[FloatArray, FloatArray, tuple[bool, bool]] | None
 
 #: Samples needed before anything is said (a second at the sampling rate).
 MIN_SAMPLES = 10
@@ -80,10 +81,34 @@ class LiveGeometry:
         self._head = 0
         self._last_slot = -np.inf
 
-    def offer_one(self, stamp: float, frame: FloatArray, templates: Templates) -> None:
-        """Sample one frame (P, 3) of ``stamp`` s when its period has no sample yet (the per-frame path)."""
-        if math.floor(stamp / self.period) > self._last_slot:
+    def offer_one(self, stamp: float, frame: FloatArray, templates: Templates, poses: FramePoses = None) -> None:
+        """Sample one frame (P, 3) of ``stamp`` s when its period has no sample yet (the per-frame path).
+
+        ``poses``: the estimator's poses of this frame
+        (:attr:`OnlineJoint.frame_poses <jointfit_core.estimator.OnlineJoint.frame_poses>`, after the
+        gate), used instead of posing the frame again; None: posed here.
+        """
+        if math.floor(stamp / self.period) <= self._last_slot:
+            return
+        if poses is None:
             self.offer(np.array([stamp]), frame[None], templates)
+            return
+        if not self._same_templates(templates) or not poses[2][0]:
+            return
+        self._last_slot = float(math.floor(stamp / self.period))
+        R, d, posed = poses
+        R_c = R[1:2] if posed[1] else np.full((1, 3, 3), np.nan)
+        self._store(frame[None], R[0:1], d[0:1], R_c)
+
+    def _same_templates(self, templates: Templates) -> bool:
+        """Whether both templates exist; a new one clears the samples (they are in the old frame)."""
+        tp, tc = templates
+        if tp is None or tc is None:
+            return False
+        if tp is not self._templates[0] or tc is not self._templates[1]:
+            self.clear()
+            self._templates = (tp, tc)
+        return True
 
     def offer(self, stamps: FloatArray, frames: FloatArray, templates: Templates) -> None:
         """Sample frames (K, P, 3) of stamps (K,) s, oldest first: one per period, posed with ``templates``.
@@ -91,12 +116,10 @@ class LiveGeometry:
         Frames that cannot be posed are kept as NaN (left out of the
         medians); nothing is sampled while a template is missing.
         """
-        tp, tc = templates
-        if tp is None or tc is None:
+        if not self._same_templates(templates):
             return
-        if tp is not self._templates[0] or tc is not self._templates[1]:
-            self.clear()
-            self._templates = (tp, tc)
+        tp, tc = self._templates
+        assert tp is not None and tc is not None
         slots = np.floor(np.asarray(stamps, dtype=np.float64) / self.period)
         uniq, first = np.unique(slots, return_index=True)
         pick = first[uniq > self._last_slot][-self.size :]
@@ -110,14 +133,18 @@ class LiveGeometry:
                 pc = poses_from_markers(picked[:, self._child_rows], tc)
         except InputError:
             return
-        R_p, d_p = pp.R_world_local, pp.d_world_local
+        self._store(picked, pp.R_world_local, pp.d_world_local, pc.R_world_local)
+
+    def _store(self, picked: FloatArray, R_p: FloatArray, d_p: FloatArray, R_c: FloatArray) -> None:
+        """Keep frames (K, P, 3) posed ``R_p`` (K, 3, 3), ``d_p`` (K, 3) (parent) and ``R_c`` (child)."""
+        k = picked.shape[0]
         rel = d_p[:, None, :]
-        idx = (self._head + np.arange(pick.size)) % self.size
+        idx = (self._head + np.arange(k)) % self.size
         self._landmarks[idx] = (picked[:, self._landmark_rows] - rel) @ R_p  # R_p^T (y - d_p)
         self._child_in_parent[idx] = (picked[:, self._child_rows] - rel) @ R_p
-        self._R_parent_child[idx] = np.swapaxes(R_p, 1, 2) @ pc.R_world_local
-        self._head = int((self._head + pick.size) % self.size)
-        self.count = min(self.count + int(pick.size), self.size)
+        self._R_parent_child[idx] = np.swapaxes(R_p, 1, 2) @ R_c
+        self._head = int((self._head + k) % self.size)
+        self.count = min(self.count + k, self.size)
 
     def geometry(self) -> SegmentGeometry | None:
         """The samples as the summary's geometry (None with fewer than :data:`MIN_SAMPLES`)."""

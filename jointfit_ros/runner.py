@@ -425,7 +425,8 @@ class JointRunner:
         if self.matcher is None:
             out = self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
             if self.live_geometry is not None:
-                self.live_geometry.offer_one(stamp_ns * 1e-9, frame, self.estimator.templates)
+                est = self.estimator
+                self.live_geometry.offer_one(stamp_ns * 1e-9, frame, est.templates, est.frame_poses)
             return out
         if self.cfg.parent_markers:
             return self._paired(0, stamp_ns, frame[self.parent_rows], frame)

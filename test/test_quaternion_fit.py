@@ -83,3 +83,21 @@ def test_a_row_does_not_depend_on_its_block() -> None:
         lam_b, q_b = largest_eigenpair(N[lo:hi], S[lo:hi], bound[lo:hi])
         np.testing.assert_array_equal(lam_b, lam[lo:hi])
         np.testing.assert_array_equal(q_b, q[lo:hi])
+
+
+def test_few_and_many_pairs_give_the_same_rotations() -> None:
+    """Up to EIGH_BELOW pairs are solved with eigh, more with the closed form: the same rotations."""
+    from jointfit_core.quaternion_fit import EIGH_BELOW, rotations_from_correlations
+
+    rng = np.random.default_rng(16)
+    x = rng.normal(size=(EIGH_BELOW + 5, 4, 3))
+    x -= x.mean(axis=1, keepdims=True)
+    R_true = Rotation.random(x.shape[0], random_state=rng).as_matrix()
+    y = np.einsum("mij,mpj->mpi", R_true, x) + rng.normal(0.0, 0.001, x.shape)
+    S = np.einsum("mpi,mpj->mij", x, y)
+    bound = 0.5 * (np.einsum("mpi,mpi->m", x, x) + np.einsum("mpi,mpi->m", y, y))
+    many, lam_many = rotations_from_correlations(S, bound)
+    few = [rotations_from_correlations(S[k : k + 1], bound[k : k + 1]) for k in range(x.shape[0])]
+    np.testing.assert_allclose(np.concatenate([f[0] for f in few]), many, atol=1e-12)
+    np.testing.assert_allclose(np.concatenate([f[1] for f in few]), lam_many, rtol=1e-12)
+    np.testing.assert_allclose(many, R_true, atol=0.02)

@@ -137,3 +137,17 @@ def test_fit_reports_both_parts(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert "statistical" in stdout
     calib = (out / "right_hip.calibration.yaml").read_text()
     assert "attachment" in calib and "skin" in calib
+
+
+def test_one_frames_feature_sums_equal_the_batched_ones() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from jointfit_core.artefact_sums import feature_sums, feature_sums_one
+
+    rng = np.random.default_rng(17)
+    rotvecs = np.concatenate([rng.normal(0.0, 0.8, (40, 3)), [[0.0, 0.0, 0.0], [1e-12, 0.0, 0.0], [3.1, 0.0, 0.1]]])
+    Q = Rotation.from_rotvec(rotvecs).as_matrix()
+    t = rng.normal(0.0, 300.0, (Q.shape[0], 3))
+    batched = feature_sums(Q, t)
+    one = np.stack([feature_sums_one(np.concatenate([Q[k], t[k][:, None]], axis=1)) for k in range(Q.shape[0])])
+    np.testing.assert_allclose(one, batched, rtol=1e-12, atol=1e-12 * np.abs(batched).max())
