@@ -138,7 +138,8 @@ class JointfitNode(Node):
         self._rviz_pub = self.create_publisher(MarkerArray, "~/markers", 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._description = RobotDescription(self.cfg.units)
-        self._segments = SegmentOutput(list(self.runners.values()))
+        ns = self.get_namespace().strip("/")
+        self._segments = SegmentOutput(list(self.runners.values()), f"{ns}/" if ns else "")
         self._segments_pub = self.create_publisher(PoseArray, "~/segments", 10) if self._segments.names else None
         self._tf = TfOutput(self) if self._segments.names else None
         if self._tf is not None and self._tf.problem:

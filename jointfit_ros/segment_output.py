@@ -9,7 +9,9 @@ and encodes them as a ``geometry_msgs/PoseArray``: one pose per segment in
 template's marker centroid) and orientation in the world frame; a segment no
 joint could pose in this frame has a NaN position and the zero quaternion.
 :meth:`SegmentOutput.tree` gives the frame's TF tree (world -> segment,
-segment -> joint; frozen joints static) for :class:`~jointfit_ros.tf_output.TfOutput`.
+segment -> joint, frozen joints static; segment -> each joint's own parent
+template frame ``<joint>.local_frame_id``, static, so that ``<joint>/centre_local``
+can be transformed) for :class:`~jointfit_ros.tf_output.TfOutput`.
 
 Only marker joints of the marker topic take part (not the joints of pose
 topics, whose poses their own topics carry, nor chained joints).
@@ -17,13 +19,14 @@ topics, whose poses their own topics carry, nor chained joints).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from jointfit_core.segment_frames import SegmentFrames, SegmentJoint
-from jointfit_core.tf_tree import JointFrame, TfTree, quaternions_from_matrices, tf_tree
+from jointfit_core.tf_tree import JointFrame, TfTree, Transform, quaternions_from_matrices, tf_tree
 
 from .raw import pose_array_bytes
 from .runner import JointRunner
@@ -40,9 +43,12 @@ class SegmentOutput:
     ----------
     runners : sequence of JointRunner
         The node's joints; those of pose topics and chained ones are left out.
+    prefix : str
+        Put before every TF frame id but the world's (``subject_a/``; empty for a node in ``/``).
     """
 
-    def __init__(self, runners: Sequence[JointRunner]) -> None:
+    def __init__(self, runners: Sequence[JointRunner], prefix: str = "") -> None:
+        self.prefix = prefix
         self.runners = [r for r in runners if r.live_geometry is not None]
         self.frames = SegmentFrames(
             [SegmentJoint(r.cfg.name, r.cfg.parent_markers, r.cfg.child_markers) for r in self.runners]
@@ -81,7 +87,24 @@ class SegmentOutput:
             self._joints_key = key
         return self._joints
 
+    def local_frames(self) -> list[Transform]:
+        """``segment -> <joint>.local_frame_id`` of every joint whose templates exist: the joint's own parent
+        template frame (the frame of ``<joint>/centre_local``) in its segment's (identity for the owner)."""
+        out: list[Transform] = []
+        templates = self._templates()
+        for i, r in enumerate(self.runners):
+            al = self.frames.alignment(i, 0, templates)
+            if al is not None:
+                segment = self.prefix + self.names[self.frames.segment_of(i, 0)]
+                q = quaternions_from_matrices(al[0])
+                out.append(Transform(segment, self.prefix + r.cfg.local_frame_id, al[1].copy(), q))
+        return out
+
     def tree(self, R: FloatArray, t: FloatArray, world_frame: str) -> TfTree:
         """The frame's TF tree: ``world_frame -> segment`` for the posed segments, ``segment -> joint`` (static
-        when frozen)."""
-        return tf_tree(world_frame, self.names, R, t, self.joint_frames())
+        when frozen) and ``segment -> <joint>.local_frame_id`` (static); every frame id but the world's after
+        :attr:`prefix` (the node's namespace: two subjects' trees stay apart)."""
+        p = self.prefix
+        joints = [dataclasses.replace(j, name=p + j.name, parent=p + j.parent) for j in self.joint_frames()]
+        tree = tf_tree(world_frame, [p + n for n in self.names], R, t, joints)
+        return TfTree(dynamic=tree.dynamic, static=tree.static + tuple(self.local_frames()))

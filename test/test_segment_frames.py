@@ -159,7 +159,7 @@ def test_segments_message_and_tf_broadcast_through_a_stand_in_tf2(skeleton_run, 
     from jointfit_ros.tf_output import TfOutput
 
     runners, router, t, _ = skeleton_run
-    out = SegmentOutput(runners)
+    out = SegmentOutput(runners, prefix="subject_a/")
     R, origin = out.poses()
     msg = deserialize_message(out.pose_array(T0, "world", R, origin), PoseArray)
     assert len(msg.poses) == len(out.names) == 7 and msg.header.frame_id == "world"
@@ -181,12 +181,20 @@ def test_segments_message_and_tf_broadcast_through_a_stand_in_tf2(skeleton_run, 
         n2 = tf.send(out.tree(R, origin, "world"), T0 + 10_000_000)
     finally:
         runners[0].estimator.thaw()  # the module's runners as they were
-    assert n == 7 + 6 and n2 == 7 + 5  # the static one is not sent again
+    # segments 7, joints 6 (1 frozen: static), each joint's own parent template frame 6 (static): the statics
+    # are not sent again
+    assert n == 7 + 6 + 6 and n2 == 7 + 5
     assert [k for k, _ in _Broadcaster.sent] == [
         "StaticTransformBroadcaster", "TransformBroadcaster", "TransformBroadcaster"
     ]
     sent = {m.child_frame_id: m for _, msgs in _Broadcaster.sent for m in msgs}
-    assert sent[runners[0].cfg.name].header.frame_id == out.names[out.frames.segment_of(0, 0)]
+    assert all(child.startswith("subject_a/") for child in sent)  # two subjects' trees stay apart
+    assert {m.header.frame_id for m in sent.values()} - {f"subject_a/{n}" for n in out.names} == {"world"}
+    hip = "subject_a/" + runners[0].cfg.name
+    assert sent[hip].header.frame_id == "subject_a/" + out.names[out.frames.segment_of(0, 0)]
+    sent = {k.removeprefix("subject_a/"): m for k, m in sent.items()}
+    for m in sent.values():
+        m.header.frame_id = m.header.frame_id.removeprefix("subject_a/")
 
     def world_of(frame: str) -> np.ndarray:
         T = np.eye(4)
@@ -221,6 +229,9 @@ def test_segments_message_and_tf_broadcast_through_a_stand_in_tf2(skeleton_run, 
             assert np.degrees(np.arccos(min(1.0, abs(T[:3, 2] @ d_true[0])))) < 2.0, r.cfg.name
             gap = gap - d_true[0] * (gap @ d_true[0])
         assert np.linalg.norm(gap) < 3e-3, r.cfg.name
+        # <joint>/centre_local is in <joint>.local_frame_id: through TF it lands on the same point
+        L = world_of(r.cfg.local_frame_id)
+        np.testing.assert_allclose(L[:3, :3] @ local + L[:3, 3], T[:3, 3], atol=1e-9)
 
 
 def d_is_none(sol: object) -> bool:
