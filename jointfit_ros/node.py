@@ -142,6 +142,8 @@ class JointfitNode(Node):
         self._segments = SegmentOutput(list(self.runners.values()), f"{ns}/" if ns else "")
         self._segments_pub = self.create_publisher(PoseArray, "~/segments", 10) if self._segments.names else None
         self._tf = TfOutput(self) if self._segments.names else None
+        self._subscribers_due = 0.0
+        self._wants = (False, False)
         if self._tf is not None and self._tf.problem:
             self.get_logger().info(self._tf.problem)
         self._description_pub = self.create_publisher(
@@ -275,8 +277,10 @@ class JointfitNode(Node):
         routed = self.router.markers(raw)
         for r in routed:
             self._publish_world(r)
-        self._publish_joint_states(routed)
-        if self.router.routed_stamp_ns is not None and self._segments_pub is not None:
+        segments, joint_states = self._subscribed()
+        if joint_states:
+            self._publish_joint_states(routed)
+        if segments and self.router.routed_stamp_ns is not None:
             self._publish_segments(self.router.routed_stamp_ns)
         self._report_problem()
 
@@ -294,10 +298,33 @@ class JointfitNode(Node):
             routed = self.router.pose(topic, raw)
             for r in routed:
                 self._publish_world(r)
-            self._publish_joint_states(routed)
+            if self._subscribed()[1]:
+                self._publish_joint_states(routed)
             self._report_problem()
 
         return callback
+
+    #: Seconds between looks at who subscribes to ``~/segments`` and ``~/joint_states``.
+    SUBSCRIBERS_PERIOD = 0.25
+
+    def _subscribed(self) -> tuple[bool, bool]:
+        """Whether to make ``~/segments`` (or the TF tree) and ``~/joint_states`` for this frame.
+
+        Each costs ~0.1-0.2 ms per frame, so it is made only while someone subscribes
+        (looked at every :attr:`SUBSCRIBERS_PERIOD` s: a new subscriber is served from at
+        most that much later). A skipped stretch leaves the next angle without a velocity
+        (it is longer than the velocity's largest gap).
+        """
+        now = time.monotonic()
+        if now >= self._subscribers_due:
+            self._subscribers_due = now + self.SUBSCRIBERS_PERIOD
+            pub = self._segments_pub
+            tf = self._tf is not None and self._tf.available
+            self._wants = (
+                pub is not None and (tf or pub.get_subscription_count() > 0),
+                self._joint_state_pub.get_subscription_count() > 0,
+            )
+        return self._wants
 
     # ------------------------------------------------------------------ outputs
 
