@@ -118,8 +118,21 @@ def _estimate(values: dict[str, str]) -> str:
     return text
 
 
+def _anatomical(values: dict[str, str]) -> str:
+    """The live anatomical result in words (``ISB pelvis (-59, -85.2, 90.3) mm``, ``11.2 deg from the
+    epicondyle line``), or empty (:mod:`jointfit_ros.live_geometry`)."""
+    pelvis = _find(values, "centre in ISB pelvis (")
+    if pelvis is not None:
+        return f"ISB pelvis {_vector(pelvis[0])} {pelvis[1].split(',')[0]}"
+    angle = values.get("axis to epicondyle line (deg)")
+    return f"{angle} deg from the epicondyle line" if angle is not None else ""
+
+
 def _joint_line(name: str, level: str, message: str, values: dict[str, str]) -> str:
     parts = [f"{name} {level}", _estimate(values)]
+    anatomical = _anatomical(values)
+    if anatomical:
+        parts.append(anatomical)
     if "coverage (%)" in values:
         parts.append(f"coverage {values['coverage (%)']} %")
     if values.get("done") == "True":

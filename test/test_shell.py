@@ -63,6 +63,15 @@ def test_status_lines_read_units_estimate_coverage_and_done() -> None:
     assert "gated 0/0.5 %" in lines[1]
     assert lines[2].startswith("knee WARN | axis (1, 0, 0) sd 7.5 deg, point (1, 2, 3) mm sd 4 mm | coverage 44.4 %")
     assert status_lines([other], "/jointfit") == []
+    live = diagnostic_status(  # the live anatomical results (jointfit_ros.live_geometry) in the line
+        "jointfit: hip", 0, "estimating",
+        {"centre_parent (mm)": [46.1, -90.7, -79.7], "centre in ISB pelvis (mm, right side)": [-59.0, -85.2, 90.3]},
+        hardware_id="/jointfit",
+    )
+    assert "| ISB pelvis (-59, -85.2, 90.3) mm |" in status_lines([live], "/jointfit")[0]
+    epi = diagnostic_status("jointfit: knee", 0, "estimating", {"axis to epicondyle line (deg)": 11.2},
+                            hardware_id="/jointfit")
+    assert "| 11.2 deg from the epicondyle line |" in status_lines([epi], "/jointfit")[0]
 
 
 def test_status_log_once_per_condition() -> None:
