@@ -223,6 +223,16 @@ def test_no_non_finite_output_even_without_a_workspace() -> None:
     assert not output_sane(JointOutput("ball", np.zeros(3), np.diag([np.inf, 1.0, 1.0]), None, None, 0.0), float("inf"))
     assert not output_sane(JointOutput("ball", np.array([2e5, 0, 0]), np.eye(3), None, None, 0.0), 1e5)
     assert not output_sane(JointOutput("ball", np.zeros(3), np.eye(3) * 1e12, None, None, 0.0), 1e5)
+    inf_both = np.diag([np.inf, -np.inf, 1.0])  # +inf and -inf entries (their sum is NaN)
+    assert not output_sane(JointOutput("ball", np.zeros(3), inf_both, None, None, 0.0), float("inf"))
+    z = np.array([0.0, 0.0, 1.0])
+    assert output_sane(JointOutput("hinge", np.zeros(3), np.eye(3), z, np.eye(3) * 1e-4, 0.0), float("inf"))
+    for bad in (np.array([np.nan, 0.0, 1.0]), None):
+        d, c = (z, bad) if bad is None else (bad, np.eye(3))
+        assert not output_sane(JointOutput("hinge", np.zeros(3), np.eye(3), d, c, 0.0), float("inf"))
+    cov_nan = np.eye(3)
+    cov_nan[0, 1] = np.nan
+    assert not output_sane(JointOutput("hinge", np.zeros(3), np.eye(3), z, cov_nan, 0.0), float("inf"))
 
 
 def test_workspace_drops_markers_and_poses_beyond_it() -> None:
