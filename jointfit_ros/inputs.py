@@ -34,6 +34,7 @@ from .raw import (
     rotation_matrix_from_quaternion,
 )
 from .runner import JointRunner
+from .stamp_gaps import StampGaps
 from .timeline import Timeline
 
 __all__ = [
@@ -275,6 +276,8 @@ class MessageRouter:
         self.frame_id = ""
         #: The stamp (ns) of the frame the latest :meth:`markers` gave to the joints; None when it gave none.
         self.routed_stamp_ns: int | None = None
+        #: Frames of the marker topic that never arrived (gaps in its stamps), for ``/diagnostics``.
+        self.gaps = StampGaps()
         self._last_frame: FloatArray | None = None
         self.recorded: list[tuple[int, FloatArray]] | None = None
         self.timeline = Timeline(round(cfg.max_stamp_jump * 1e9), clock=clock, counters=self.counters)
@@ -563,6 +566,7 @@ class MessageRouter:
             _note_dropped(self.marker_runners, 1)
             return []
         stamp_ns, frame_id, frame = got
+        self.gaps.add(stamp_ns)
         t = self._time(stamp_ns, self.cfg.marker_topic, self.marker_runners)
         if t is None:
             return []

@@ -18,6 +18,7 @@ import dataclasses
 import re
 import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -86,6 +87,12 @@ _ROS_TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,
     "string_array": ParameterType.PARAMETER_STRING_ARRAY,
 }
+#: The input status warns when, over the last ``stale_after`` seconds, at least this many frames of the
+#: marker stream never arrived and they are more than :data:`MISSED_WARN_SHARE` of the stream's frames.
+MISSED_WARN_MIN = 10
+MISSED_WARN_SHARE = 0.05
+
+
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
     text = spec.description + range_text(spec)
     if spec.choices:
@@ -143,6 +150,7 @@ class JointfitNode(Node):
         self._segments_pub = self.create_publisher(PoseArray, "~/segments", 10) if self._segments.names else None
         self._tf = TfOutput(self) if self._segments.names else None
         self._subscribers_due = 0.0
+        self._gap_samples = deque()
         self._wants = (False, False)
         if self._tf is not None and self._tf.problem:
             self.get_logger().info(self._tf.problem)
@@ -512,6 +520,7 @@ class JointfitNode(Node):
         return problems
 
     _input_samples: InputActivity | None = None  # the input status's samples (made at the first tick)
+    _gap_samples: deque[tuple[float, int, int]]  # (tick time, frames received, frames missed) over stale_after
 
     def _input_activity(self, now: float, level: int, message: str, values: dict[str, object]) -> tuple[int, str]:
         """The ``jointfit: input`` status with the stamp counters and the recent activity (adds to ``values``).
@@ -537,6 +546,23 @@ class JointfitNode(Node):
             message += f"; {c['stamps_ahead'] + c['invalid_stamps']} messages with bad stamps dropped"
         if c["timeline_restarts"]:
             message += f"; the stamps restarted {c['timeline_restarts']} times (looped or restarted recording)"
+        gaps = self.router.gaps
+        values["frames missed (gaps in the stamps)"] = gaps.missed
+        # over the last stale_after seconds: a stall of the stream's source now and then is not a loss rate
+        history = self._gap_samples
+        history.append((now, gaps.received, gaps.missed))
+        while len(history) > 2 and history[1][0] <= now - self.cfg.stale_after:
+            history.popleft()
+        received, missed = gaps.received - history[0][1], gaps.missed - history[0][2]
+        if received + missed:
+            values["frames missed, recent (%)"] = round(100.0 * missed / (received + missed), 2)  # last stale_after s
+        if missed >= MISSED_WARN_MIN and missed > MISSED_WARN_SHARE * (received + missed):
+            level = max(level, WARN)
+            message += (
+                f"; {missed} of the last {received + missed} frames never arrived (gaps in the stamps of the "
+                f"{1.0 / gaps.period_s:.0f} Hz stream): the node is not keeping up, or the network or the driver "
+                "drops them"
+            )
         if act.silent_s is not None and act.silent_s >= self.cfg.stale_after:
             return STALE, f"no messages for {act.silent_s:.1f} s; {message}"
         if act.all_dropped:

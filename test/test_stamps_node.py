@@ -232,6 +232,33 @@ def test_silence_is_stale_and_all_dropped_is_not_ok(rig: tuple[_Client, Any, Any
     assert proc.poll() is None
 
 
+def test_frames_that_never_arrive_are_counted_and_warned(rig: tuple[_Client, Any, Any]) -> None:
+    client, rigs, proc = rig
+    t = _warm_up(client, rigs)
+    _stream(client, rigs, t, 2.0)  # the period is known after 200 frames
+    assert client.spin_until(lambda: "frames missed (gaps in the stamps)" in client.status("input"), 3.0)
+    missed_before = _count(client, "input", "frames missed (gaps in the stamps)")
+    # every 4th frame lost on the way (as when the node or the network cannot keep up)
+    t += 2.0
+    rng = np.random.default_rng(4)
+    start = time.monotonic()
+    for k in range(int(2.0 * RATE)):
+        tk = t + k * PERIOD
+        if k % 4 != 3:
+            _publish(client, int((T0 + tk) * S), _frame(rigs, rng, tk))
+        client.executor.spin_once(timeout_sec=0.0)
+        lag = start + (k + 1) * PERIOD - time.monotonic()
+        if lag > 0:
+            client.spin_until(lambda: False, lag)
+    assert client.spin_until(lambda: "never arrived" in client.status("input").get("message", ""), 3.0), (
+        client.status("input")
+    )
+    assert _level(client, "input") == WARN
+    missed = _count(client, "input", "frames missed (gaps in the stamps)") - missed_before
+    assert 0.8 * RATE * 2.0 / 4 <= missed <= RATE * 2.0 / 4 + 5, missed
+    assert proc.poll() is None
+
+
 def test_joint_states_carry_the_frozen_and_the_estimating_joint(rig: tuple[_Client, Any, Any]) -> None:
     """~/joint_states from the node's own process: hip_x/_y/_z (frozen ball) and knee (estimating hinge), stamped."""
     client, rigs, _ = rig
