@@ -13,7 +13,7 @@ trial (its window holds every frame), checked by
 - a steady artefact: :func:`~jointfit_core.soft_tissue.hip_motion` /
   :func:`~jointfit_core.soft_tissue.knee_motion` (30 s at 100 Hz) with the
   same artefact field throughout (linear plus quadratic in the angles,
-  :func:`~jointfit_core.soft_tissue.skin_markers_at`), 0.7 mm noise;
+  :func:`~jointfit_core.soft_tissue.skin_markers_by_block`), 0.7 mm noise;
 - an artefact that changes between movements: a new field (``mode`` as
   given) every 7.5 s (a re-seated cluster, tissue loaded differently).
 
@@ -34,7 +34,7 @@ from _paper_helpers import elapsed_line, markdown_table, print_and_write, run_he
 
 from jointfit_core.block_check import window_consistency
 from jointfit_core.estimator import OnlineJoint
-from jointfit_core.soft_tissue import hip_motion, knee_motion, skin_markers_at
+from jointfit_core.soft_tissue import hip_motion, knee_motion, skin_markers_by_block
 from jointfit_core.synthetic import two_segment_motion
 
 SCRIPT = "consistency.py"
@@ -54,11 +54,11 @@ def _skin(rng: np.random.Generator, kind: str, mm: float, attachment: str, per_b
     motion = hip_motion(rng) if kind == "ball" else knee_motion(rng)
     t = np.arange(3000) / 100.0
     parent_mm = mm if kind == "hinge" else 0.0
-    pieces = np.array_split(t, 4) if per_block else [t]
-    parts = [skin_markers_at(rng, motion, tb, child_mm=mm, parent_mm=parent_mm, mode=mode, noise_std=0.7)
-             for tb in pieces]
+    parent, child = skin_markers_by_block(
+        rng, motion, t, 4 if per_block else 1, child_mm=mm, parent_mm=parent_mm, mode=mode, noise_std=0.7
+    )
     est = OnlineJoint(kind, window=t.size + 10, attachment=attachment)
-    est.update_many(np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts]), t)
+    est.update_many(parent, child, t)
     return est
 
 

@@ -26,6 +26,7 @@ amplitude: thigh 10-30 mm, shank 5-15 mm in the review of Leardini et al.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -194,7 +195,29 @@ def skin_markers_at(
     return out[0], out[1]
 
 
-__all__ += ["JointMotion", "hip_motion", "knee_motion"]
+def skin_markers_by_block(
+    rng: np.random.Generator,
+    motion: TwoSegmentMotion | JointMotion,
+    times: ArrayLike,
+    blocks: int,
+    **artefact: Any,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`skin_markers_at` with a new artefact field in each of ``blocks`` contiguous pieces of ``times``.
+
+    An artefact that changes between movements (the cluster re-settles), for the consistency check
+    across movement blocks (:mod:`jointfit_core.consistency`); ``blocks=1`` is one field for all.
+    ``artefact``: the keyword arguments of :func:`skin_markers_at`.
+
+    Returns
+    -------
+    parent, child : ndarray, shape (N, Pa, 3) and (N, Pc, 3)
+        World marker positions (mm), the pieces in order.
+    """
+    parts = [skin_markers_at(rng, motion, tb, **artefact) for tb in np.array_split(np.asarray(times), blocks)]
+    return np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
+
+
+__all__ += ["skin_markers_by_block", "JointMotion", "hip_motion", "knee_motion"]
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from jointfit_core.consistency import ARTEFACT_VERDICT, CONSISTENCY_ALPHA, ball_
 from jointfit_core.errors import InputError
 from jointfit_core.estimator import OnlineJoint
 from jointfit_core.io import MarkerData, write_trc
-from jointfit_core.soft_tissue import hip_motion, knee_motion, skin_markers_at
+from jointfit_core.soft_tissue import hip_motion, knee_motion, skin_markers_by_block
 from jointfit_core.synthetic import two_segment_motion
 
 RATE_HZ = 100.0
@@ -158,11 +158,11 @@ def _skin_trial(seed: int, kind: str, mm: float, attachment: str, *, per_block: 
     motion = hip_motion(rng) if kind == "ball" else knee_motion(rng)
     t = np.arange(round(30.0 * RATE_HZ)) / RATE_HZ
     parent_mm = mm if kind == "hinge" else 0.0
-    pieces = np.array_split(t, 4) if per_block else [t]
-    parts = [skin_markers_at(rng, motion, tb, child_mm=mm, parent_mm=parent_mm, mode=mode, noise_std=0.7)
-             for tb in pieces]
+    parent, child = skin_markers_by_block(
+        rng, motion, t, 4 if per_block else 1, child_mm=mm, parent_mm=parent_mm, mode=mode, noise_std=0.7
+    )
     est = OnlineJoint(kind, window=t.size + 10, attachment=attachment)
-    est.update_many(np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts]), t)
+    est.update_many(parent, child, t)
     est.estimate()
     return est
 
@@ -240,8 +240,7 @@ def test_runner_status_warns_with_the_spread() -> None:
     rng = np.random.default_rng(0)
     motion = hip_motion(rng)
     t = np.arange(3000) / RATE_HZ
-    parts = [skin_markers_at(rng, motion, tb, child_mm=10.0, mode="rigid", noise_std=0.7) for tb in np.array_split(t, 4)]
-    frames = np.concatenate([np.concatenate([p, c], axis=1) for p, c in parts])
+    frames = np.concatenate(skin_markers_by_block(rng, motion, t, 4, child_mm=10.0, mode="rigid", noise_std=0.7), axis=1)
     names = [f"P{i}" for i in range(4)] + [f"C{i}" for i in range(4)]
     cfg = node_config(_rig_values(names, "rigid"))
     runner = JointRunner(cfg.joints[0], cfg)
@@ -261,8 +260,7 @@ def test_fit_reports_the_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
     rng = np.random.default_rng(1)
     motion = hip_motion(rng)
     t = np.arange(3000) / RATE_HZ
-    parts = [skin_markers_at(rng, motion, tb, child_mm=10.0, mode="rigid", noise_std=0.7) for tb in np.array_split(t, 4)]
-    frames = np.concatenate([np.concatenate([p, c], axis=1) for p, c in parts])
+    frames = np.concatenate(skin_markers_by_block(rng, motion, t, 4, child_mm=10.0, mode="rigid", noise_std=0.7), axis=1)
     names = [f"P{i}" for i in range(4)] + [f"C{i}" for i in range(4)]
     trc = tmp_path / "hip.trc"
     write_trc(trc, MarkerData(np.round(frames, 5), tuple(names), RATE_HZ, "mm"))
