@@ -13,7 +13,7 @@ trial (its window holds every frame), checked by
 - a steady artefact: :func:`~jointfit_core.soft_tissue.hip_motion` /
   :func:`~jointfit_core.soft_tissue.knee_motion` (30 s at 100 Hz) with the
   same artefact field throughout (linear plus quadratic in the angles,
-  :func:`~jointfit_core.soft_tissue.skin_markers_by_block`), 0.7 mm noise;
+  :func:`~jointfit_core.soft_tissue.skin_markers_at`), 0.7 mm noise;
 - an artefact that changes between movements: a new field (``mode`` as
   given) every 7.5 s (a re-seated cluster, tissue loaded differently).
 
