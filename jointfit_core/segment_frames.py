@@ -7,7 +7,7 @@ whose lists are equal share it) one frame, the template frame of its
 *owner*: the joint that has it as the child, or for a root the first joint
 that has it as the parent (the links of :mod:`jointfit_core.urdf` use the
 same rule). The other joints' templates of the same markers are aligned to
-the owner's (Kabsch, cached per pair of templates), so that
+the owner's (Kabsch, recomputed when a template is replaced), so that
 
 * :meth:`SegmentFrames.poses` gives each segment's world pose in a frame
   from whichever joint posed it (the owner's when it did), and
@@ -83,7 +83,6 @@ class SegmentFrames:
                 entry.insert(0, children[0])
         self.owner = [entry[0] for entry in self.members]
         self._segment_of = {(i, side): s for s, entry in enumerate(self.members) for i, side in entry}
-        self._align: dict[tuple[int, int], tuple[FloatArray, FloatArray]] = {}
         J, K = len(self.joints), max((len(e) for e in self.members), default=1)
         # per segment its members as flat indices 2 * joint + side, owner first, padded with 2J (never posed)
         self._member_index = np.full((len(self.names), K), 2 * J, dtype=np.intp)
@@ -102,30 +101,18 @@ class SegmentFrames:
     def alignment(self, joint: int, side: int, templates: Sequence[Templates]) -> tuple[FloatArray, FloatArray] | None:
         """``(A (3, 3), a (3,))`` with ``x_segment = A x_joint + a`` from a joint's template frame to its segment's.
 
-        Identity for the owner; None while either template is missing.
-        Cached by the two template arrays (a template is replaced, not
-        changed in place, when it is rebuilt).
+        Identity for the owner; None while either template is missing (see :meth:`_alignments`).
         """
-        s = self._segment_of[(joint, side)]
-        oi, oside = self.owner[s]
-        mine, theirs = templates[joint][side], templates[oi][oside]
-        if mine is None or theirs is None:
-            return None
-        if (oi, oside) == (joint, side):
-            return np.eye(3), np.zeros(3)
-        key = (id(mine), id(theirs))
-        hit = self._align.get(key)
-        if hit is None:
-            if len(self._align) > 4 * len(self._segment_of):
-                self._align.clear()  # templates were rebuilt: the old keys are stale
-            hit = kabsch(theirs, mine)
-            self._align[key] = hit
-        return hit
+        A, a, ok = self._alignments(templates)
+        k = 2 * joint + side
+        return (A[k], a[k]) if ok[k] else None
 
     def _alignments(self, templates: Sequence[Templates]) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
         """Every (joint, side)'s alignment stacked: ``A (2J, 3, 3)``, ``a (2J, 3)`` and whether it exists (2J,).
 
-        Recomputed only when a template was replaced (compared by identity).
+        Kabsch of the owner's template onto the joint's, recomputed only when a
+        template was replaced (a template is replaced, not changed in place,
+        when it is rebuilt: compared by identity).
         """
         key = tuple(id(tp) for pair in templates for tp in pair)
         if key != self._stack_key:
@@ -133,11 +120,14 @@ class SegmentFrames:
             A = np.tile(np.eye(3), (2 * J, 1, 1))
             a = np.zeros((2 * J, 3))
             ok = np.zeros(2 * J, dtype=bool)
-            for i in range(J):
-                for side in (0, 1):
-                    al = self.alignment(i, side, templates)
-                    if al is not None:
-                        A[2 * i + side], a[2 * i + side], ok[2 * i + side] = al[0], al[1], True
+            for (i, side), seg in self._segment_of.items():
+                oi, oside = self.owner[seg]
+                mine, theirs = templates[i][side], templates[oi][oside]
+                if mine is None or theirs is None:
+                    continue
+                if (oi, oside) != (i, side):
+                    A[2 * i + side], a[2 * i + side] = kabsch(theirs, mine)
+                ok[2 * i + side] = True
             self._stack = (A, a, ok)
             self._stack_key = key
         return self._stack

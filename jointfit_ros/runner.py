@@ -229,6 +229,9 @@ class JointRunner:
         self.child_rows = np.array([node.marker_index(m) for m in cfg.child_markers], dtype=np.intp)
         self.uses_marker_topic = bool(cfg.parent_markers or cfg.child_markers)
         self.chained = bool(cfg.parent_chain or cfg.child_chain)
+        #: Both segments are marker clusters of the marker topic (no pose topic, no chained joint): the
+        #: estimator poses them from the node's frames (live geometry, ``~/segments``).
+        self.poses_both_segments = bool(len(self.parent_rows) and len(self.child_rows)) and not self.chained
         self.matcher: StampMatcher | None = None
         self._virtual: FloatArray | None = None
         templates: tuple[FloatArray | None, FloatArray | None] = (None, None)
@@ -262,7 +265,7 @@ class JointRunner:
         #: Sampled recent frames for the anatomical results and range of motion in ``/diagnostics``
         #: (marker joints of the marker topic, not chained; else None).
         self.live_geometry: LiveGeometry | None = None
-        if len(self.parent_rows) and len(self.child_rows) and not self.chained:
+        if self.poses_both_segments:
             rows = {m: node.marker_index(m) for _, m in cfg.anatomical}
             self.live_geometry = LiveGeometry(cfg, rows, self.parent_rows, self.child_rows)
         self._load()

@@ -49,12 +49,13 @@ class SegmentOutput:
 
     def __init__(self, runners: Sequence[JointRunner], prefix: str = "") -> None:
         self.prefix = prefix
-        self.runners = [r for r in runners if r.live_geometry is not None]
+        self.runners = [r for r in runners if r.poses_both_segments]
         self.frames = SegmentFrames(
             [SegmentJoint(r.cfg.name, r.cfg.parent_markers, r.cfg.child_markers) for r in self.runners]
         )
-        self._joints: list[JointFrame] = []
-        self._joints_key: tuple[object, ...] = ()
+        self._prefixed_names = [prefix + n for n in self.frames.names]
+        self._estimates_cache: tuple[list[JointFrame], tuple[Transform, ...]] = ([], ())
+        self._estimates_key: tuple[object, ...] = ()
 
     @property
     def names(self) -> list[str]:
@@ -76,35 +77,36 @@ class SegmentOutput:
             q[posed] = quaternions_from_matrices(R[posed])
         return pose_array_bytes(stamp_ns, frame_id, t, orientations=q)
 
-    def joint_frames(self) -> list[JointFrame]:
-        """Every joint with an identifiable estimate in its parent segment's frame (recomputed when one changes)."""
-        sols = [r.estimator.solution for r in self.runners]
-        sols = [s if s is not None and s.identifiable else None for s in sols]
-        frozen = [r.estimator.frozen for r in self.runners]
-        key = (*(id(s) for s in sols), *frozen, *(id(tp) for r in self.runners for tp in r.estimator.templates))
-        if key != self._joints_key:
-            self._joints = self.frames.joint_frames(sols, self._templates(), frozen)
-            self._joints_key = key
-        return self._joints
-
-    def local_frames(self) -> list[Transform]:
-        """``segment -> <joint>.local_frame_id`` of every joint whose templates exist: the joint's own parent
-        template frame (the frame of ``<joint>/centre_local``) in its segment's (identity for the owner)."""
-        out: list[Transform] = []
-        templates = self._templates()
-        for i, r in enumerate(self.runners):
-            al = self.frames.alignment(i, 0, templates)
-            if al is not None:
-                segment = self.prefix + self.names[self.frames.segment_of(i, 0)]
-                q = quaternions_from_matrices(al[0])
-                out.append(Transform(segment, self.prefix + r.cfg.local_frame_id, al[1].copy(), q))
-        return out
+    def _estimates(self) -> tuple[list[JointFrame], tuple[Transform, ...]]:
+        """The tree's parts that change only with an estimate, a freeze or a template, prefixed: the
+        identifiable joints in their segments' frames, and ``segment -> <joint>.local_frame_id`` (each joint's
+        own parent template frame, the frame of ``<joint>/centre_local``, in its segment's; identity for the
+        owner). Rebuilt only when one of those changes."""
+        est = [r.estimator for r in self.runners]
+        sols = [e.solution if e.solution is not None and e.solution.identifiable else None for e in est]
+        frozen = [e.frozen for e in est]
+        key = (*(id(s) for s in sols), *frozen, *(id(tp) for e in est for tp in e.templates))
+        if key != self._estimates_key:
+            p = self.prefix
+            templates = self._templates()
+            joints = [
+                dataclasses.replace(j, name=p + j.name, parent=p + j.parent)
+                for j in self.frames.joint_frames(sols, templates, frozen)
+            ]
+            local: list[Transform] = []
+            for i, r in enumerate(self.runners):
+                al = self.frames.alignment(i, 0, templates)
+                if al is not None:
+                    segment = p + self.names[self.frames.segment_of(i, 0)]
+                    local.append(Transform(segment, p + r.cfg.local_frame_id, al[1].copy(), quaternions_from_matrices(al[0])))
+            self._estimates_cache = (joints, tuple(local))
+            self._estimates_key = key
+        return self._estimates_cache
 
     def tree(self, R: FloatArray, t: FloatArray, world_frame: str) -> TfTree:
         """The frame's TF tree: ``world_frame -> segment`` for the posed segments, ``segment -> joint`` (static
         when frozen) and ``segment -> <joint>.local_frame_id`` (static); every frame id but the world's after
         :attr:`prefix` (the node's namespace: two subjects' trees stay apart)."""
-        p = self.prefix
-        joints = [dataclasses.replace(j, name=p + j.name, parent=p + j.parent) for j in self.joint_frames()]
-        tree = tf_tree(world_frame, [p + n for n in self.names], R, t, joints)
-        return TfTree(dynamic=tree.dynamic, static=tree.static + tuple(self.local_frames()))
+        joints, local = self._estimates()
+        tree = tf_tree(world_frame, self._prefixed_names, R, t, joints)
+        return TfTree(dynamic=tree.dynamic, static=tree.static + local)
