@@ -87,10 +87,12 @@ _ROS_TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,
     "string_array": ParameterType.PARAMETER_STRING_ARRAY,
 }
-#: The input status warns when, over the last ``stale_after`` seconds, at least this many frames of the
-#: marker stream never arrived and they are more than :data:`MISSED_WARN_SHARE` of the stream's frames.
+#: The input status warns when, over the last :data:`MISSED_WINDOW_S` seconds (at least ``stale_after``),
+#: at least this many frames of the marker stream never arrived and they are more than
+#: :data:`MISSED_WARN_SHARE` of the stream's frames.
 MISSED_WARN_MIN = 10
 MISSED_WARN_SHARE = 0.05
+MISSED_WINDOW_S = 5.0
 
 
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
@@ -548,14 +550,14 @@ class JointfitNode(Node):
             message += f"; the stamps restarted {c['timeline_restarts']} times (looped or restarted recording)"
         gaps = self.router.gaps
         values["frames missed (gaps in the stamps)"] = gaps.missed
-        # over the last stale_after seconds: a stall of the stream's source now and then is not a loss rate
+        # over the last few seconds: a burst lost in one stall of the source or the node is not a loss rate
         history = self._gap_samples
         history.append((now, gaps.received, gaps.missed))
-        while len(history) > 2 and history[1][0] <= now - self.cfg.stale_after:
+        while len(history) > 2 and history[1][0] <= now - max(MISSED_WINDOW_S, self.cfg.stale_after):
             history.popleft()
         received, missed = gaps.received - history[0][1], gaps.missed - history[0][2]
         if received + missed:
-            values["frames missed, recent (%)"] = round(100.0 * missed / (received + missed), 2)  # last stale_after s
+            values["frames missed, recent (%)"] = round(100.0 * missed / (received + missed), 2)
         if missed >= MISSED_WARN_MIN and missed > MISSED_WARN_SHARE * (received + missed):
             level = max(level, WARN)
             message += (

@@ -197,7 +197,7 @@ def test_a_replay_looping_to_its_start_is_followed(rig: tuple[_Client, Any, Any]
     )
     _stream(client, rigs, 0.0, 1.5)  # the bag again from its start: the same stamps
     assert client.spin_until(lambda: _count(client, "input", "timeline restarts") == 1, 5.0), client.status("input")
-    assert _level(client, "hip") == OK and _level(client, "knee") == OK and _level(client, "input") == OK
+    assert _level(client, "hip") == OK and _level(client, "knee") == OK and _level(client, "input") == OK, client.status("input")
     client.spin_until(lambda: False, 0.3)  # the last outputs in
     replay_hip, replay_knee = _second_pass(client.hip), _second_pass(client.knee)
     # recognised within a few frames: the frozen hip publishes from then on, with the replay's own stamps
