@@ -20,7 +20,7 @@ Pure numpy; the node publishes the result (``~/segments``, TF).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +55,9 @@ class SegmentFrames:
     joints : sequence of SegmentJoint
         In the node's order (the same order as the ``frame_poses`` and
         ``templates`` given to the methods).
+    labels : mapping, optional
+        Segment names by marker list (the node's configured ``segments``); the
+        others are named by :func:`~jointfit_core.urdf.segment_names`.
 
     Attributes
     ----------
@@ -66,10 +69,10 @@ class SegmentFrames:
         Per segment, every (joint, side) that has it, the owner first.
     """
 
-    def __init__(self, joints: Sequence[SegmentJoint]) -> None:
+    def __init__(self, joints: Sequence[SegmentJoint], labels: Mapping[tuple[str, ...], str] | None = None) -> None:
         self.joints = list(joints)
         lists = [m for j in self.joints for m in (j.parent_markers, j.child_markers)]
-        named = segment_names(lists)
+        named = segment_names(lists, labels)
         self.names = list(named.values())
         index = {m: k for k, m in enumerate(named)}
         self.members: list[list[tuple[int, int]]] = [[] for _ in self.names]

@@ -151,23 +151,36 @@ def _prefix(markers: tuple[str, ...]) -> str:
     return re.sub(r"[\d_\-.:]+$", "", first[:k])
 
 
-def segment_names(marker_lists: Sequence[tuple[str, ...]]) -> dict[tuple[str, ...], str]:
-    """Marker list -> segment name, in order of first appearance: the markers' common prefix without
-    trailing digits and ``_`` (``RTHI1..4`` -> ``RTHI``), ``segment_<k>`` when there is none or it is taken."""
+def segment_names(
+    marker_lists: Sequence[tuple[str, ...]], given: Mapping[tuple[str, ...], str] | None = None
+) -> dict[tuple[str, ...], str]:
+    """Marker list -> segment name, in order of first appearance.
+
+    The name ``given`` for the list (the node's configured ``segments``), else the markers'
+    common prefix without trailing digits and ``_`` (``RTHI1..4`` -> ``RTHI``), else
+    ``segment_<k>`` when there is none or it is taken.
+    """
+    given = given or {}
     out: dict[tuple[str, ...], str] = {}
+    taken = set(given.values())
     for markers in marker_lists:
         if markers in out:
             continue
+        if markers in given:
+            out[markers] = given[markers]
+            continue
         name = _prefix(markers)
-        if not re.fullmatch(r"[A-Za-z_][\w]*", name) or name in out.values():
+        if not re.fullmatch(r"[A-Za-z_][\w]*", name) or name in out.values() or name in taken:
             name = f"segment_{len(out)}"
         out[markers] = name
     return out
 
 
-def link_names(joints: Sequence[UrdfJoint]) -> dict[tuple[str, ...], str]:
+def link_names(
+    joints: Sequence[UrdfJoint], given: Mapping[tuple[str, ...], str] | None = None
+) -> dict[tuple[str, ...], str]:
     """Marker list -> link name (see the module docstring, :func:`segment_names`), in order of first appearance."""
-    return segment_names([m for j in joints for m in (j.parent_markers, j.child_markers)])
+    return segment_names([m for j in joints for m in (j.parent_markers, j.child_markers)], given)
 
 
 def _origin(R: FloatArray, xyz: FloatArray) -> str:
@@ -214,7 +227,10 @@ def _tree(joints: Sequence[UrdfJoint], links: Mapping[tuple[str, ...], str]) -> 
 
 
 def urdf_from_calibrations(
-    calibrations: Sequence[Mapping[str, Any]], robot_name: str = "subject", metres_per_unit: float = 1.0
+    calibrations: Sequence[Mapping[str, Any]],
+    robot_name: str = "subject",
+    metres_per_unit: float = 1.0,
+    segment_labels: Mapping[tuple[str, ...], str] | None = None,
 ) -> str:
     """The URDF text of the calibrated joints (see the module docstring).
 
@@ -227,6 +243,9 @@ def urdf_from_calibrations(
     metres_per_unit : float
         The calibrations' length unit in metres (URDF lengths are metres): 1 for the node's
         (metres by REP 103), 0.001 for a fit of a C3D/TRC in mm.
+    segment_labels : mapping, optional
+        Link names by marker list (the node's ``segments``); others are named by
+        :func:`segment_names`.
 
     Raises
     ------
@@ -249,7 +268,7 @@ def urdf_from_calibrations(
     names = [j.name for j in joints]
     if len(set(names)) != len(names):
         raise InputError(f"joint names repeat: {names}")
-    links = link_names(joints)
+    links = link_names(joints, segment_labels)
     _tree(joints, links)
     # Each segment's link frame: the template of the joint that has it as the child (the root: as the parent).
     frame: dict[tuple[str, ...], FloatArray] = {j.child_markers: j.template_child for j in joints}

@@ -277,7 +277,9 @@ def fit_main(argv: Sequence[str]) -> int:
                 metres = METRES_PER_UNIT.get(unit)
                 if metres is None:
                     raise JointfitError(f"the length unit {unit!r} is not m, cm or mm (URDF lengths are metres)")
-                exported["subject.urdf"] = urdf_from_calibrations(list(calibrations.values()), metres_per_unit=metres)
+                exported["subject.urdf"] = urdf_from_calibrations(
+                    list(calibrations.values()), metres_per_unit=metres, segment_labels=cfg.segment_labels()
+                )
             except JointfitError as exc:  # e.g. joints that do not form one tree: the fit stands without it
                 summary["urdf"] = f"not written: {exc}"
         summary["exports"] = [str(out_dir / name) for name in exported]

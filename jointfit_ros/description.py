@@ -11,7 +11,7 @@ says why (in ``/diagnostics``).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 from jointfit_core.errors import JointfitError
 from jointfit_core.io import METRES_PER_UNIT
@@ -31,8 +31,9 @@ class RobotDescription:
         The node's input length unit (``units``: m, cm or mm); the URDF is in metres.
     """
 
-    def __init__(self, units: str) -> None:
+    def __init__(self, units: str, segment_labels: Mapping[tuple[str, ...], str] | None = None) -> None:
         self.metres_per_unit = METRES_PER_UNIT.get(units, 1.0)
+        self.segment_labels = dict(segment_labels or {})
         self.problem = "no frozen joint yet"
         self.joints = 0
         self._key: list[tuple[str, object]] = []  # the frozen joints' names and estimates last described
@@ -54,7 +55,10 @@ class RobotDescription:
             data.update(r.identity())
             calibrations.append(data)
         try:
-            text = urdf_from_calibrations(calibrations, robot_name="subject", metres_per_unit=self.metres_per_unit)
+            text = urdf_from_calibrations(
+                calibrations, robot_name="subject", metres_per_unit=self.metres_per_unit,
+                segment_labels=self.segment_labels,
+            )
         except JointfitError as exc:
             self.problem = f"not published: {exc}"
             return None

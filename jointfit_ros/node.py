@@ -62,6 +62,7 @@ from .params import (
     JOINT_PARAMS,
     NODE_PARAMS,
     RUNTIME_PARAMS,
+    SEGMENT_PARAMS,
     ConfigError,
     NodeConfig,
     ParamSpec,
@@ -146,7 +147,7 @@ class JointfitNode(Node):
         self._joint_state_pub = self.create_publisher(JointState, "~/joint_states", 10)
         self._rviz_pub = self.create_publisher(MarkerArray, "~/markers", 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._description = RobotDescription(self.cfg.units)
+        self._description = RobotDescription(self.cfg.units, self.cfg.segment_labels())
         ns = self.get_namespace().strip("/")
         self._segments = SegmentOutput(list(self.runners.values()), f"{ns}/" if ns else "")
         self._segments_pub = self.create_publisher(PoseArray, "~/segments", 10) if self._segments.names else None
@@ -202,12 +203,16 @@ class JointfitNode(Node):
     def _declare_parameters(self) -> dict[str, Any]:
         """Declare every parameter once (joint ones after reading ``joints``); return their values."""
         values = {spec.name: self._declare(spec.name, spec) for spec in NODE_PARAMS}
-        joints = check_value(NODE_PARAMS[0], values["joints"], "joints")
-        check_known(self._parameter_overrides, joints)  # a misspelt key in the params file is an error
-        for joint in joints:
-            for spec in JOINT_PARAMS:
-                full = f"{joint}.{spec.name}"
-                values[full] = self._declare(full, spec)
+        specs = {spec.name: spec for spec in NODE_PARAMS}
+        joints = check_value(specs["joints"], values["joints"], "joints")
+        segments = check_value(specs["segments"], values["segments"], "segments")
+        # a misspelt key in the params file is an error
+        check_known(self._parameter_overrides, joints, segments)
+        for owner, owned in ((joints, JOINT_PARAMS), (segments, SEGMENT_PARAMS)):
+            for name in owner:
+                for spec in owned:
+                    full = f"{name}.{spec.name}"
+                    values[full] = self._declare(full, spec)
         return values
 
     def _on_set_parameters_guarded(self, params: list[Parameter]) -> SetParametersResult:

@@ -264,7 +264,7 @@ def with_file_marker_names(values: Mapping[str, Any], labels: Sequence[str], sou
         ``marker_names`` = the labels that occur once in the file (empty and
         repeated labels cannot be told apart and are left out), so that the
         joints' ``parent_markers``, ``child_markers``, ``axis_toward_marker``
-        and ``axis_from_marker`` name file labels.
+        and ``axis_from_marker`` and the segments' ``markers`` name file labels.
 
     Raises
     ------
@@ -278,8 +278,13 @@ def with_file_marker_names(values: Mapping[str, Any], labels: Sequence[str], sou
     counts = Counter(labels)
     names = [label for label in labels if label and counts[label] == 1]
     joints = out.get("joints")
-    for joint in joints if isinstance(joints, list) else []:
-        for key in (*_MARKER_LISTS, *_MARKER_NAMES):
+    segments = out.get("segments")
+    owners: list[tuple[Any, tuple[str, ...]]] = [
+        (j, (*_MARKER_LISTS, *_MARKER_NAMES)) for j in (joints if isinstance(joints, list) else [])
+    ]
+    owners += [(g, ("markers",)) for g in (segments if isinstance(segments, list) else [])]
+    for joint, keys in owners:
+        for key in keys:
             given = out.get(f"{joint}.{key}")
             wanted = [given] if isinstance(given, str) and given else given
             if not isinstance(wanted, list) or not all(isinstance(m, str) for m in wanted):

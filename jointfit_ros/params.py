@@ -18,7 +18,7 @@ import math
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,9 @@ __all__ = [
     "check_known",
     "calibration_path",
     "ANATOMICAL_GROUPS",
+    "SEGMENT_PARAMS",
+    "SegmentConfig",
+    "segment_param_names",
 ]
 
 
@@ -270,6 +273,26 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         runtime=True,
         maximum=86400.0,
     ),
+    ParamSpec(
+        "segments",
+        "string_array",
+        [],
+        "Names of the body segments (optional; e.g. [PELV, RTHI, RSHK]): each has `<segment>.markers` or "
+        "`<segment>.pose_topic`, and joints name theirs with `<joint>.parent` / `<joint>.child` instead of listing "
+        "markers. A segment shared by two joints (the thigh: the hip's child and the knee's parent) is one "
+        "segment, named so in `~/segments`, the TF tree and the URDF.",
+    ),
+)
+
+#: Parameters of one segment of ``segments``, under its name (``RTHI.markers``).
+SEGMENT_PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("markers", "string_array", [], "Names (from marker_names) of the segment's markers (>= 3 to be posed)."),
+    ParamSpec(
+        "pose_topic",
+        "string",
+        "",
+        "Instead of markers: a geometry_msgs/PoseStamped topic with the segment's rigid-body pose.",
+    ),
 )
 
 _PELVIS_USE = (
@@ -301,6 +324,18 @@ _ANATOMICAL_PARAMS: tuple[ParamSpec, ...] = tuple(
 
 JOINT_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("type", "string", "ball", "ball (centre of rotation) or hinge (axis).", choices=("ball", "hinge")),
+    ParamSpec(
+        "parent",
+        "string",
+        "",
+        "The parent segment, a name from `segments` (instead of parent_markers / parent_pose_topic).",
+    ),
+    ParamSpec(
+        "child",
+        "string",
+        "",
+        "The child segment, a name from `segments` (instead of child_markers / child_pose_topic).",
+    ),
     ParamSpec("parent_markers", "string_array", [], "Names (from marker_names) of the parent segment's markers, >= 3."),
     ParamSpec("child_markers", "string_array", [], "Names (from marker_names) of the child segment's markers, >= 3."),
     ParamSpec(
@@ -502,6 +537,8 @@ class JointConfig:
     target_sd: float = 0.0
     auto_freeze: bool = False
     attachment: str = "skin"
+    parent_segment: str = ""
+    child_segment: str = ""
 
     def landmarks(self, group: str) -> dict[str, str] | None:
         """The markers of a landmark group of :data:`ANATOMICAL_GROUPS` by role, or None when not configured."""
@@ -510,10 +547,15 @@ class JointConfig:
         return {r: given[r] for r in roles} if all(r in given for r in roles) else None
 
     def segment_names(self) -> tuple[str, str]:
-        """The parent and the child by role and markers (or pose topic), e.g. ``parent (RTHI1, RTHI2, RTHI3)``."""
+        """The parent and the child by role and segment name or markers (or pose topic).
+
+        E.g. ``parent RTHI`` with ``segments``, else ``parent (RTHI1, RTHI2, RTHI3)``.
+        """
         return (
-            f"parent ({', '.join(self.parent_markers) or self.parent_pose_topic})",
-            f"child ({', '.join(self.child_markers) or self.child_pose_topic})",
+            f"parent {self.parent_segment}" if self.parent_segment
+            else f"parent ({', '.join(self.parent_markers) or self.parent_pose_topic})",
+            f"child {self.child_segment}" if self.child_segment
+            else f"child ({', '.join(self.child_markers) or self.child_pose_topic})",
         )
 
     def window_kwargs(self) -> dict[str, Any]:
@@ -523,6 +565,15 @@ class JointConfig:
         if self.half_life_s > 0.0:
             return {"half_life_s": self.half_life_s}
         return {"window": self.window}
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """Checked parameters of one segment of ``segments`` (see :data:`SEGMENT_PARAMS`)."""
+
+    name: str
+    markers: tuple[str, ...]
+    pose_topic: str
 
 
 @dataclass(frozen=True)
@@ -553,6 +604,11 @@ class NodeConfig:
     max_cloud_points: int = 2000
     max_stamp_jump: float = 1.0
     stale_after: float = 3.0
+    segments: tuple[SegmentConfig, ...] = ()
+
+    def segment_labels(self) -> dict[tuple[str, ...], str]:
+        """The configured segments' names by marker list (empty without ``segments``)."""
+        return {s.markers: s.name for s in self.segments if s.markers}
 
     def marker_index(self, name: str) -> int:
         """Row of a marker in the marker frame."""
@@ -562,6 +618,11 @@ class NodeConfig:
 def joint_param_names(joint: str) -> list[str]:
     """Full names of a joint's parameters (``<joint>.<name>``)."""
     return [f"{joint}.{p.name}" for p in JOINT_PARAMS]
+
+
+def segment_param_names(segment: str) -> list[str]:
+    """Full names of a segment's parameters (``<segment>.<name>``)."""
+    return [f"{segment}.{p.name}" for p in SEGMENT_PARAMS]
 
 
 def check_value(spec: ParamSpec, value: Any, full_name: str | None = None) -> Any:
@@ -762,7 +823,87 @@ def calibration_path(text: str) -> Path:
     return Path(expanded)
 
 
-def check_known(names: Iterable[str], joints: Sequence[str]) -> None:
+def _segment_configs(
+    values: Mapping[str, Any], segments: Sequence[str], marker_names: Sequence[str]
+) -> dict[str, SegmentConfig]:
+    """The ``segments`` and their ``<segment>.*`` parameters, checked (names, markers, one input each)."""
+    out: dict[str, SegmentConfig] = {}
+    owner: dict[str, str] = {}
+    for name in segments:
+        v = _values(SEGMENT_PARAMS, values, name + ".")
+        markers, topic = v["markers"], v["pose_topic"]
+        if bool(markers) == bool(topic):
+            raise ConfigError(
+                f"{name}: give {name}.markers (names from marker_names) or {name}.pose_topic, "
+                + ("not both" if markers else "got neither")
+            )
+        unknown = [m for m in markers if m not in marker_names]
+        if unknown:
+            raise ConfigError(f"{name}.markers: {unknown} are not in marker_names {list(marker_names)}")
+        if len(set(markers)) != len(markers):
+            raise ConfigError(f"{name}.markers: a marker is listed twice: {markers!r}")
+        for m in markers:
+            if m in owner:
+                raise ConfigError(f"{name}.markers: {m!r} is also on segment {owner[m]!r}; a marker is on one segment")
+            owner[m] = name
+        out[name] = SegmentConfig(name=name, markers=tuple(markers), pose_topic=topic)
+    return out
+
+
+def _check_segment_names(segments: Sequence[str], joints: Sequence[str]) -> None:
+    """Segment names: valid, each once, none a joint's (their parameters would share a prefix)."""
+    for name in segments:
+        if not _NAME.match(name):
+            raise ConfigError(f"segments: {name!r} is not a valid name (letters, digits and _; starting with a letter)")
+        if name in joints:
+            raise ConfigError(f"segments: {name!r} is also a joint's name; a segment needs a name of its own")
+    if len(set(segments)) != len(segments):
+        raise ConfigError(f"segments: a name is listed twice: {list(segments)!r}")
+
+
+def _with_segments(
+    values: Mapping[str, Any], joints: Sequence[str], segments: Mapping[str, SegmentConfig]
+) -> tuple[dict[str, Any], dict[str, tuple[str, str]]]:
+    """The joints' ``parent`` / ``child`` segments written out as their markers or pose topics.
+
+    Returns the values with ``<joint>.<side>_markers`` (or ``_pose_topic``) filled in
+    and, per joint, its (parent, child) segment names ("" where not given).
+    """
+    specs = {s.name: s for s in JOINT_PARAMS}
+    out = dict(values)
+    named: dict[str, tuple[str, str]] = {}
+    for j in joints:
+        sides = []
+        for side in ("parent", "child"):
+            seg = check_value(specs[side], values.get(f"{j}.{side}"), f"{j}.{side}")
+            sides.append(seg)
+            if not seg:
+                continue
+            if seg not in segments:
+                raise ConfigError(f"{j}.{side}: {seg!r} is not in segments {list(segments)}")
+            if values.get(f"{j}.{side}_markers") or values.get(f"{j}.{side}_pose_topic"):
+                raise ConfigError(
+                    f"{j}.{side}: give the segment ({j}.{side}) or {j}.{side}_markers / {j}.{side}_pose_topic, "
+                    "not both"
+                )
+            cfg = segments[seg]
+            chain = check_value(specs[f"{side}_chain"], values.get(f"{j}.{side}_chain"), f"{j}.{side}_chain")
+            if cfg.markers and len(cfg.markers) + len(chain) < 3:
+                raise ConfigError(
+                    f"{j}.{side}: segment {seg!r} has {len(cfg.markers)} marker(s) {list(cfg.markers)}; a joint's "
+                    f"segment needs at least 3 to be posed (with {j}.{side}_chain joints)"
+                )
+            if cfg.markers:
+                out[f"{j}.{side}_markers"] = list(cfg.markers)
+            else:
+                out[f"{j}.{side}_pose_topic"] = cfg.pose_topic
+        if sides[0] and sides[0] == sides[1]:
+            raise ConfigError(f"{j}: parent and child are the same segment {sides[0]!r}")
+        named[j] = (sides[0], sides[1])
+    return out, named
+
+
+def check_known(names: Iterable[str], joints: Sequence[str], segments: Sequence[str] = ()) -> None:
     """Refuse parameter names that no declaration knows (a misspelt key would be ignored in silence).
 
     Parameters
@@ -772,6 +913,8 @@ def check_known(names: Iterable[str], joints: Sequence[str]) -> None:
         ``use_sim_time`` and ``qos_overrides.*`` (rclpy's own) are allowed.
     joints : sequence of str
         The configured joints.
+    segments : sequence of str
+        The configured segments (``segments``).
 
     Raises
     ------
@@ -779,12 +922,15 @@ def check_known(names: Iterable[str], joints: Sequence[str]) -> None:
         Naming the first unknown key and the closest known one.
     """
     known = {s.name for s in NODE_PARAMS} | {f"{j}.{s.name}" for j in joints for s in JOINT_PARAMS}
+    known |= {f"{g}.{s.name}" for g in segments for s in SEGMENT_PARAMS}
     for name in names:
         if name in known or name == "use_sim_time" or name.startswith("qos_overrides."):
             continue
         head = name.split(".")[0]
-        if "." in name and head not in joints:
-            hint = f"; {head!r} is not in joints {list(joints)}"
+        if "." in name and head not in joints and head not in segments:
+            hint = f"; {head!r} is not in joints {list(joints)}" + (
+                f" nor in segments {list(segments)}" if segments else ""
+            )
         else:
             close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
             hint = f"; did you mean {close[0]!r}?" if close else ""
@@ -814,15 +960,19 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
             raise ConfigError(f"joints: {j!r} is not a valid name (letters, digits and _; starting with a letter)")
     if len(set(joints)) != len(joints):
         raise ConfigError(f"joints: a name is listed twice: {joints!r}")
-    check_known(values, joints)
+    _check_segment_names(v["segments"], joints)
+    check_known(values, joints, v["segments"])
     names = v["marker_names"]
     if len(set(names)) != len(names):
         raise ConfigError(f"marker_names: a name is listed twice: {names!r}")
     if v["unlabelled"] and (v["marker_type"] != "pointcloud2" or v["label_field"]):
         raise ConfigError("unlabelled: only for marker_type pointcloud2 without a label_field")
+    segments = _segment_configs(values, v["segments"], names)
+    resolved, named = _with_segments(values, joints, segments)
     done: dict[str, JointConfig] = {}
     for j in joints:
-        done[j] = _joint_config(j, values, names, done)
+        parent, child = named[j]
+        done[j] = replace(_joint_config(j, resolved, names, done), parent_segment=parent, child_segment=child)
     configs = tuple(done.values())
     files: dict[str, str] = {}
     for c in configs:
@@ -861,6 +1011,7 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         max_cloud_points=v["max_cloud_points"],
         max_stamp_jump=v["max_stamp_jump"],
         stale_after=v["stale_after"],
+        segments=tuple(segments.values()),
     )
 
 
@@ -904,6 +1055,10 @@ def parameters_markdown() -> str:
             f"| `<joint>.{spec.name}` | {spec.kind} | {_default_text(spec)} | {spec.description}{choices}"
             f"{range_text(spec)} |"
         )
+    lines += ["", "Per segment of `segments`, under its name (`RTHI.markers`, ...):", ""]
+    lines += ["| parameter | type | default | meaning |", "|---|---|---|---|"]
+    for spec in SEGMENT_PARAMS:
+        lines.append(f"| `<segment>.{spec.name}` | {spec.kind} | {_default_text(spec)} | {spec.description} |")
     return "\n".join(lines) + "\n"
 
 

@@ -50,8 +50,9 @@ class SegmentOutput:
     def __init__(self, runners: Sequence[JointRunner], prefix: str = "") -> None:
         self.prefix = prefix
         self.runners = [r for r in runners if r.poses_both_segments]
+        labels = self.runners[0].node.segment_labels() if self.runners else {}
         self.frames = SegmentFrames(
-            [SegmentJoint(r.cfg.name, r.cfg.parent_markers, r.cfg.child_markers) for r in self.runners]
+            [SegmentJoint(r.cfg.name, r.cfg.parent_markers, r.cfg.child_markers) for r in self.runners], labels
         )
         self._prefixed_names = [prefix + n for n in self.frames.names]
         self._estimates_cache: tuple[list[JointFrame], tuple[Transform, ...]] = ([], ())

@@ -33,8 +33,10 @@ def skeleton_parameters(
     Returns
     -------
     dict of str to object
-        For :func:`jointfit_ros.params.node_config`. A segment shared by two joints (the
-        thigh: the hip's child, the knee's parent) is the same marker list in both.
+        For :func:`jointfit_ros.params.node_config`: the skeleton's ``segments`` used by the
+        joints (``pelvis``, ``r_thigh``, ...; ``<segment>.markers``) and per joint its ``parent``
+        and ``child`` segment. A segment shared by two joints (the thigh: the hip's child, the
+        knee's parent) is named once.
 
     Raises
     ------
@@ -51,11 +53,17 @@ def skeleton_parameters(
         "marker_type": "pose_array",
         "marker_names": skeleton.marker_names(),
     }
+    used: set[str] = set()
     for j in chosen:
         child = skeleton.joint_segment(j)
         parent = skeleton.segment(child.parent or "")
+        used |= {parent.name, child.name}
         values[f"{j}.type"] = child.kind
-        values[f"{j}.parent_markers"] = parent.marker_names
-        values[f"{j}.child_markers"] = child.marker_names
+        values[f"{j}.parent"] = parent.name
+        values[f"{j}.child"] = child.name
         values[f"{j}.window"] = window
+    values["segments"] = [s.name for s in skeleton.segments if s.name in used]
+    for s in skeleton.segments:
+        if s.name in used:
+            values[f"{s.name}.markers"] = s.marker_names
     return values

@@ -108,3 +108,80 @@ def test_fake_mocap_skeleton_publishes() -> None:
     assert 1.0 < np.linalg.norm(points, axis=1).min() and points[:, 2].max() < 2.0  # metres, in the lab
     a = elbow_axis[-1].vector
     assert abs(np.linalg.norm([a.x, a.y, a.z]) - 1.0) < 1e-9
+
+
+def test_node_runs_the_lower_body_config_with_its_segments_named() -> None:
+    """config/lower_body.yaml (segments, joints naming their parent and child) in the node's own process.
+
+    The node declares the segments' parameters from the file, reports ~/segments in the configured
+    names and estimates the stream's joints (the fake skeleton in its own process).
+    """
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    domain_id = 233 + os.getpid() % 3
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain_id))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    diag: list[DiagnosticArray] = []
+    hips: list[PoseWithCovarianceStamped] = []
+    segments: list[PoseArray] = []
+    node = mocap = jf = None
+
+    def status(name: str) -> dict[str, str]:
+        for arr in reversed(diag):
+            for st in arr.status:
+                if st.name == f"jointfit: {name}":
+                    return {"level": str(st.level[0] if isinstance(st.level, bytes) else st.level),
+                            "message": st.message, **{kv.key: kv.value for kv in st.values}}
+        return {}
+
+    try:
+        node = Node("test_lower_body_listener", context=context)
+        node.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 100)
+        node.create_subscription(PoseWithCovarianceStamped, "/r_hip/centre", hips.append, 100)
+        node.create_subscription(PoseArray, "/jointfit/segments", segments.append, 100)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        jf = subprocess.Popen(
+            [sys.executable, "-m", "jointfit_ros.node", "--ros-args", "--params-file",
+             str(REPO_ROOT / "config" / "lower_body.yaml")],
+            env=env, cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        mocap = subprocess.Popen(
+            [sys.executable, "-m", "jointfit_ros.fake_mocap", "--skeleton", "lower", "--rate", "100",
+             "--duration", "60"],
+            env=env, cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        deadline = time.monotonic() + 45.0
+        while time.monotonic() < deadline and jf.poll() is None:
+            executor.spin_once(timeout_sec=0.05)
+            if status("input").get("segments (~/segments order)") and len(hips) >= 20 and len(segments) >= 20:
+                break
+    finally:
+        for proc in (mocap, jf):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        output = ""
+        for proc in (mocap, jf):
+            if proc is None:
+                continue
+            try:
+                out = proc.communicate(timeout=10)[0]
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                out = proc.communicate()[0]
+            if proc is jf and out:
+                output = out.decode(errors="replace")
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    names = "pelvis, r_thigh, r_shank, r_foot, l_thigh, l_shank, l_foot"
+    assert status("input").get("segments (~/segments order)") == names, (status("input"), output[-2000:])
+    assert len(segments) >= 20 and all(len(m.poses) == 7 for m in segments), len(segments)
+    assert len(hips) >= 20, (len(hips), status("r_hip"), output[-2000:])
+    assert "Traceback" not in output, output[-2000:]

@@ -60,7 +60,8 @@ def test_skeleton_parameters_subsets_and_errors() -> None:
     sk = make_skeleton("full")
     values = skeleton_parameters(sk, ["r_hip", "r_knee"])
     assert values["joints"] == ["r_hip", "r_knee"] and len(values["marker_names"]) == 56
-    assert values["r_knee.type"] == "hinge" and values["r_knee.parent_markers"] == values["r_hip.child_markers"]
+    assert values["r_knee.type"] == "hinge" and values["r_knee.parent"] == values["r_hip.child"] == "r_thigh"
+    assert values["segments"] == ["pelvis", "r_thigh", "r_shank"] and values["r_thigh.markers"] == ["RTHI1", "RTHI2", "RTHI3", "RTHI4"]
     with pytest.raises(ValueError, match="not joints of the full skeleton"):
         skeleton_parameters(sk, ["neck"])
 
