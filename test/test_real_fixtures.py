@@ -7,8 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from jointfit_core.axis import fit_axis
 from jointfit_core.frames import pelvis_frame, to_frame
 from jointfit_core.io import read_c3d
+from jointfit_core.pose import poses_from_markers
 from jointfit_core.segments import fit_axis_two_segments, fit_centre_two_segments
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -51,6 +53,56 @@ def test_hip_methods_agree_within_their_reported_uncertainty(hip_fits: dict) -> 
     assert e / 3 < 9.0, f"methods differ by {np.linalg.norm(diff):.1f} mm, e/3 = {e / 3:.1f}"
     # the joint residual shows soft-tissue artefact far above marker noise: reported, not hidden
     assert f_w.rms > 3 * max(f_w.noise_std_parent, f_w.noise_std_child)
+
+
+def test_hip_skin_sd_covers_the_published_methods() -> None:
+    """Issue 17: the skin covariance is honest about the spread of published methods on this trial.
+
+    The data README puts the centre by published methods anywhere in HIP_BOX (pelvis frame): each of
+    its corners (the methods' extremes) must lie within the reported covariance (e/3 < 3, about 3 sd
+    in 3-D), its centre well within (e/3 < 1); and the sd must not be so wide that it says nothing
+    (below 25 mm: the methods span 26 mm at most; in vivo functional centres are ~11-13 mm off).
+    """
+    data = read_c3d(DATA / "biobuddy" / "right_hip.c3d")
+    pelvis = data.select(["RASIS", "LASIS", "RPSIS", "LPSIS"])
+    thigh = data.select(["RTHI1", "RTHI2", "RTHI3"])
+    R_world_pelvis, origin = pelvis_frame(*(pelvis[:, i] for i in range(4)))
+    covering = {}
+    for attachment in ("skin", "rigid"):
+        fit = fit_centre_two_segments(pelvis, thigh, attachment=attachment)
+        centre = to_frame(fit.centre_world, R_world_pelvis, origin)
+        ok = np.isfinite(centre).all(axis=1) & np.isfinite(fit.cov_world).all(axis=(1, 2))
+        cov = np.median(np.einsum("nji,njk,nkl->nil", R_world_pelvis[ok], fit.cov_world[ok], R_world_pelvis[ok]), axis=0)
+        c = centre[ok].mean(axis=0)
+        corners = np.array(np.meshgrid(*HIP_BOX, indexing="ij")).reshape(3, -1).T
+        e = [float((p - c) @ np.linalg.solve(cov, p - c)) / 3.0 for p in corners]
+        covering[attachment] = max(e)
+        if attachment == "skin":
+            mid = HIP_BOX.mean(axis=1) - c
+            assert max(e) < 3.0, (c, np.sqrt(np.diag(cov)), e)
+            assert float(mid @ np.linalg.solve(cov, mid)) / 3.0 < 1.0
+            assert np.sqrt(np.linalg.eigvalsh(cov).max()) < 25.0, np.sqrt(np.diag(cov))
+    assert covering["skin"] < covering["rigid"]  # the artefact part is what covers them
+
+
+def test_knee_skin_sd_covers_the_difference_between_methods() -> None:
+    """Issue 17: the two-segment axis and the one-segment axis (shank markers in the thigh frame,
+    Gamage-Lasenby) differ by ~1.8 deg on this trial; the skin direction covariance covers it
+    (e/2 < 2 in the plane normal to the axis), without an sd so wide it says nothing (< 5 deg)."""
+    data = read_c3d(DATA / "biobuddy" / "right_knee.c3d")
+    thigh, shank = data.select(["RTHI1", "RTHI2", "RTHI3"]), data.select(["RLEG1", "RLEG2", "RLEG3"])
+    fit = fit_axis_two_segments(thigh, shank)
+    poses = poses_from_markers(thigh, fit.template_parent)
+    local = np.einsum("nji,npj->npi", poses.R_world_local, shank - poses.d_world_local[:, None, :])
+    local[~poses.valid] = np.nan
+    one = fit_axis(local, reference_direction=fit.direction_parent)
+    n = fit.direction_parent
+    basis = np.linalg.svd(np.eye(3) - np.outer(n, n))[0][:, :2]
+    diff = basis.T @ (one.direction - n)
+    cov = basis.T @ (fit.cov_direction_parent + one.cov_direction) @ basis
+    assert np.degrees(np.linalg.norm(diff)) > 0.5  # the methods do differ: the check has something to cover
+    assert float(diff @ np.linalg.solve(cov, diff)) / 2.0 < 2.0, (np.degrees(np.linalg.norm(diff)), cov)
+    assert np.degrees(np.sqrt(np.trace(fit.cov_direction_parent))) < 5.0
 
 
 def test_knee_axis_near_epicondyle_line() -> None:
