@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -57,6 +58,18 @@ def test_skeleton_source_frames_and_truth_in_mm() -> None:
         src.frame(0.0, np.random.default_rng(0), 0.5, 2.0)
 
 
+def _ros(domain_id: int) -> tuple[dict[str, str], Any]:
+    """The child processes' environment (this host only, the domain, this checkout first) and an initialised
+    rclpy context on the same domain."""
+    import rclpy
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain_id))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    return env, context
+
+
 def test_fake_mocap_skeleton_publishes() -> None:
     """Receive the full skeleton's frames and one truth topic from the console script, then SIGINT it."""
     import rclpy
@@ -65,11 +78,7 @@ def test_fake_mocap_skeleton_publishes() -> None:
     from rclpy.node import Node
     from rclpy.qos import qos_profile_sensor_data
 
-    domain_id = 230 + os.getpid() % 3
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain_id))
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain_id)
+    env, context = _ros(230 + os.getpid() % 3)
     frames: list[RawPoints] = []
     wrist: list[PointStamped] = []
     elbow_axis: list[Vector3Stamped] = []
@@ -122,11 +131,7 @@ def test_node_runs_the_lower_body_config_with_its_segments_named() -> None:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
-    domain_id = 233 + os.getpid() % 3
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain_id))
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain_id)
+    env, context = _ros(233 + os.getpid() % 3)
     diag: list[DiagnosticArray] = []
     hips: list[PoseWithCovarianceStamped] = []
     segments: list[PoseArray] = []
