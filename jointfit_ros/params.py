@@ -261,6 +261,15 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         maximum=3600.0,
     ),
     ParamSpec(
+        "calibration_file",
+        "string",
+        "",
+        "One YAML file for the whole node (version 2: its segments, each in one frame, and every joint's "
+        "calibration; `~` and environment variables are expanded): `~/save` and auto_freeze write it, and it is "
+        "loaded at start when it exists (the joints found in it start frozen). Not together with "
+        "`<joint>.calibration_file` (the per-joint files, version 1). Empty: none.",
+    ),
+    ParamSpec(
         "stale_after",
         "double",
         3.0,
@@ -401,7 +410,7 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "string",
         "",
         "YAML file for `~/save` (`~` is expanded); loaded at start when it exists (the joint then starts frozen). "
-        "Empty: none.",
+        "Not together with the node's calibration_file. Empty: none.",
     ),
     ParamSpec(
         "axis_toward_marker",
@@ -455,9 +464,9 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "auto_freeze",
         "bool",
         False,
-        "Once done (needs target_sd > 0): freeze the joint and save its calibration_file (when set) by itself, "
-        "once (logged; after `~/freeze` false it waits for `~/reset`); false (default): you call `~/freeze` "
-        "and `~/save`.",
+        "Once done (needs target_sd > 0): freeze the joint and save its calibration_file (or its entry of the "
+        "node's calibration_file; when set) by itself, once (logged; after `~/freeze` false it waits for "
+        "`~/reset`); false (default): you call `~/freeze` and `~/save`.",
     ),
 )
 
@@ -553,6 +562,7 @@ class NodeConfig:
     max_cloud_points: int = 2000
     max_stamp_jump: float = 1.0
     stale_after: float = 3.0
+    calibration_file: str = ""
 
     def marker_index(self, name: str) -> int:
         """Row of a marker in the marker frame."""
@@ -809,9 +819,12 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
     joints = v["joints"]
     if not joints:
         raise ConfigError("joints: expected at least one joint name, got none")
+    node_names = {s.name for s in NODE_PARAMS}
     for j in joints:
         if not _NAME.match(j):
             raise ConfigError(f"joints: {j!r} is not a valid name (letters, digits and _; starting with a letter)")
+        if j in node_names:  # `units: m` and `units: {type: ball}` cannot both be in a parameter file
+            raise ConfigError(f"joints: {j!r} is the name of a node parameter; give the joint another name")
     if len(set(joints)) != len(joints):
         raise ConfigError(f"joints: a name is listed twice: {joints!r}")
     check_known(values, joints)
@@ -834,6 +847,14 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
                     "file of its own (saves would overwrite each other)"
                 )
             files[key] = c.name
+    if v["calibration_file"]:
+        calibration_path(v["calibration_file"])  # an unset environment variable: an error at start
+        if files:
+            raise ConfigError(
+                f"calibration_file: the node's calibration file and "
+                f"{', '.join(f'{n}.calibration_file' for n in files.values())} are set; give the node's file "
+                "(all joints, version 2) or per-joint files (version 1), not both"
+            )
     if not names and any(c.parent_markers or c.child_markers for c in configs):
         raise ConfigError("marker_names: expected the names of the points of marker_topic, got none")
     return NodeConfig(
@@ -861,6 +882,7 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         max_cloud_points=v["max_cloud_points"],
         max_stamp_jump=v["max_stamp_jump"],
         stale_after=v["stale_after"],
+        calibration_file=v["calibration_file"],
     )
 
 
