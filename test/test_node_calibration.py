@@ -331,3 +331,53 @@ def test_the_node_file_and_per_joint_files_are_not_both_set(tmp_path: Path) -> N
     values["joints"] = ["calibration_file"]
     with pytest.raises(ConfigError, match="is the name of a node parameter"):
         node_config(values)
+
+
+@pytest.mark.ros
+def test_a_node_loads_its_file_and_save_rewrites_it(calibrated: dict[str, Any], tmp_path: Path) -> None:
+    """The one real node: the node-level parameter, every joint loaded frozen at start, ~/save through the service."""
+    pytest.importorskip("rclpy")
+    import signal
+    import subprocess
+    import sys
+
+    import rclpy
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    domain = os.environ.get("ROS_DOMAIN_ID", "73")
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": domain}
+    path = tmp_path / "subject.yaml"
+    path.write_bytes(calibrated["path"].read_bytes())
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(domain))
+    client_node = Node("node_calibration_client", context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(client_node)
+    client = client_node.create_client(Trigger, "/jointfit/save")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jointfit_ros.node", "--ros-args", "--params-file", str(CONFIG),
+         "-p", f"calibration_file:={path}", "-p", "solver_process:=false"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        assert client.wait_for_service(timeout_sec=30.0), "node's ~/save not available"
+        future = client.call_async(Trigger.Request())
+        executor.spin_until_future_complete(future, timeout_sec=10.0)
+        answer = future.result()
+        assert answer is not None
+        # every joint loaded (frozen, with its estimate), so every one is saved: no frame was sent
+        assert answer.success, answer.message
+        assert answer.message == "; ".join(f"{r.cfg.name}: saved {path}" for r in calibrated["runners"])
+    finally:
+        proc.send_signal(signal.SIGINT)
+        log, _ = proc.communicate(timeout=20)
+        executor.shutdown()
+        client_node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert "Traceback" not in log, log
+    for r in calibrated["runners"]:
+        assert f"{r.cfg.name}: calibration loaded from {path} (joint {r.cfg.name}); starting frozen" in log, log
+    saved = load_node_calibration(path)
+    _assert_same(saved, calibrated["doc"])
+    assert path.with_name("subject.yaml.bak").read_bytes() == calibrated["path"].read_bytes()
