@@ -34,8 +34,9 @@ distinct marker list (a pose topic is ``pose:<topic>``, a chained joint's
 virtual marker ``chain:<joint>``), its frame the template of its owner (the
 first joint with it as the child, else the first joint); another joint's
 template of it is aligned to the owner's by Kabsch. The joints with two
-marker segments (the node's ``~/segments``) are taken first, so that their
-segment names are those of ``~/segments`` and TF.
+marker segments (those of the node's ``~/segments``) are taken first and own
+the segments they have, so that these segments' names and frames are those
+of ``~/segments`` and TF.
 
 Pure Python and numpy; written atomically with a ``.bak`` by
 :func:`save_node_calibration` (:func:`jointfit_core.calibration.save_calibration`).
@@ -198,8 +199,9 @@ def node_calibration(
     def plain_markers(k: int) -> bool:  # the joints of ~/segments: two marker segments, no chain, no pose topic
         return all(not m.startswith(("chain:", "pose:")) for key in keys[k] for m in key)
 
-    order = [k for k in range(len(names)) if plain_markers(k)] + [k for k in range(len(names)) if not plain_markers(k)]
-    frames = SegmentFrames([SegmentJoint(names[k], keys[k][0], keys[k][1]) for k in order])
+    plain = [k for k in range(len(names)) if plain_markers(k)]
+    order = plain + [k for k in range(len(names)) if not plain_markers(k)]
+    frames = SegmentFrames([SegmentJoint(names[k], keys[k][0], keys[k][1]) for k in order], primary=len(plain))
     ordered_templates = [templates[k] for k in order]
     joint_frames = {
         jf.name: jf

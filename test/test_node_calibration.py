@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
+from jointfit_core.calibration import fit_to_dict
 from jointfit_core.errors import InputError
 from jointfit_core.node_calibration import (
     NODE_CALIBRATION_VERSION,
@@ -22,6 +23,7 @@ from jointfit_core.node_calibration import (
     save_node_calibration,
 )
 from jointfit_core.skeleton_truth import make_skeleton, skeleton_frames
+from jointfit_core.urdf import kabsch
 from jointfit_ros.calibration_store import NodeCalibrationFile
 from jointfit_ros.inputs import MessageRouter
 from jointfit_ros.params import ConfigError, NodeConfig, node_config, params_from_file
@@ -133,8 +135,6 @@ def test_a_chains_hip_centre_and_knee_axis_are_in_one_thigh_frame(calibrated: di
     # the knee axis in the thigh frame is the knee's own parent-frame axis carried over by Kabsch: the knee's
     # template of the thigh put onto the owner's (the hip's) by the same rotation and translation
     cal = knee["calibration"]
-    from jointfit_core.urdf import kabsch
-
     A, a = kabsch(np.array(doc["segments"][thigh]["template"]), np.array(cal["template_parent"]))
     np.testing.assert_allclose(point, A @ np.array(cal["estimate"]["point_parent"]) + a, atol=1e-12)
     np.testing.assert_allclose(np.array(knee["in_parent"]["cov_point"]),
@@ -331,6 +331,66 @@ def test_the_node_file_and_per_joint_files_are_not_both_set(tmp_path: Path) -> N
     values["joints"] = ["calibration_file"]
     with pytest.raises(ConfigError, match="is the name of a node parameter"):
         node_config(values)
+
+
+def test_pose_topic_segments_and_frames_owned_as_in_segments(calibrated: dict[str, Any]) -> None:
+    """Hips whose pelvis is a pose topic: not in ~/segments, so the thighs' frames are the knees' (as ~/segments and
+    TF have them); the hip centre is carried into them by Kabsch and the femur length read off the file holds."""
+    calibrations = copy.deepcopy([j["calibration"] for j in calibrated["doc"]["joints"].values()])
+    for cal in calibrations:
+        if cal["joint"].endswith("_hip"):
+            cal["parent_markers"], cal["parent_pose_topic"] = [], "/pelvis/pose"
+    doc = node_calibration(calibrations, node="/jointfit", units="m")
+    pose = [n for n, seg in doc["segments"].items() if seg["pose_topic"] == "/pelvis/pose"]
+    assert len(pose) == 1 and doc["segments"][pose[0]]["markers"] == []
+    assert doc["segments"][pose[0]]["owner"] == {"joint": "r_hip", "side": "parent"}
+    assert doc["joints"]["r_hip"]["parent"] == doc["joints"]["l_hip"]["parent"] == pose[0]
+    assert "PELV" not in doc["segments"]
+    by = {c["joint"]: c for c in calibrations}
+    for side in "rl":
+        thigh = doc["segments"][f"{side.upper()}THI"]
+        assert thigh["owner"] == {"joint": f"{side}_knee", "side": "parent"}
+        assert thigh["template"] == by[f"{side}_knee"]["template_parent"]
+        hip, knee = doc["joints"][f"{side}_hip"], doc["joints"][f"{side}_knee"]
+        assert hip["child"] == knee["parent"] == f"{side.upper()}THI"
+        np.testing.assert_allclose(knee["in_parent"]["point"], by[f"{side}_knee"]["estimate"]["point_parent"],
+                                   rtol=0.0, atol=1e-15)  # the owner's own frame: unchanged
+        centre = np.array(hip["in_child"]["point"])
+        # the same hip centre as in the file where the hip owns the thigh, up to the two thigh templates' noise
+        old = calibrated["doc"]
+        A, a = kabsch(np.array(thigh["template"]), np.array(old["segments"][f"{side.upper()}THI"]["template"]))
+        np.testing.assert_allclose(centre, A @ np.array(old["joints"][f"{side}_hip"]["in_child"]["point"]) + a,
+                                   atol=1e-9)
+
+
+def test_a_chained_joint_has_its_own_segment_and_round_trips(tmp_path: Path) -> None:
+    """A knee whose thigh is two markers and the hip centre (``parent_chain``): a segment of its own
+    (``[T1, T2, chain:hip]``), restored exactly."""
+    from test_chain_node import _config as chain_config
+    from test_chain_node import _leg
+
+    path = tmp_path / "leg.yaml"
+    cfg = chain_config(calibration_file=str(path))
+    runners, router, store = _start(cfg)
+    frames, _ = _leg(2, 2500)
+    raws = [pose_array_bytes(int(1e9 + k * 1e7), "world", f) for k, f in enumerate(frames)]
+    for start in range(0, len(raws), 50):  # the knee's virtual marker needs the hip's estimate: as the node solves
+        router.markers_many(raws[start : start + 50])
+        for r in runners:
+            r.estimate(force=True)
+    for r in runners:
+        assert r.estimate(force=True), r.last_error
+    assert store.save() == [f"hip: saved {path}", f"knee: saved {path}"]
+    doc = load_node_calibration(path)
+    segments = {n: (s["markers"], s["owner"]) for n, s in doc["segments"].items()}
+    knee = doc["joints"]["knee"]
+    assert segments[knee["parent"]] == (["T1", "T2", "chain:hip"], {"joint": "knee", "side": "parent"})
+    assert segments[doc["joints"]["hip"]["child"]] == (["T1", "T2", "T3"], {"joint": "hip", "side": "child"})
+    assert len(doc["segments"]) == 4
+    again, _, _ = _start(cfg)
+    for old, new in zip(runners, again, strict=True):
+        assert new.estimator.frozen and new.loaded_from, new.last_error
+        assert fit_to_dict(new.estimator.solution) == fit_to_dict(old.estimator.solution)
 
 
 @pytest.mark.ros
