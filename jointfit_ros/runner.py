@@ -500,7 +500,8 @@ class JointRunner:
         Notes
         -----
         Per frame only where the sequential path needs the per-frame
-        output: the hinge sign (``axis_toward_marker``) is fixed on the
+        output or check: a loaded calibration's templates are compared with
+        the first fully visible frames (:meth:`_check_layout`); the hinge sign (``axis_toward_marker``) is fixed on the
         first output after the first estimate, so while it is not fixed and
         an estimate exists, frames go through :meth:`process` one by one
         until it is. ``outputs`` counts the frames that would have had one
@@ -518,8 +519,11 @@ class JointRunner:
                 self.markers_frame(int(stamps_ns[k]), frames[k])
             return
         parent, child = frames[:, self.parent_rows], frames[:, self.child_rows]
-        est = self.estimator
         k = 0
+        while k < n and self._layout_frames:  # a loaded calibration: compared with the live markers first
+            self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
+            k += 1
+        est = self.estimator  # (a new one when the loaded calibration was discarded)
         while k < n and not self._sign_fixed and est.solution is not None and est.solution.identifiable:
             self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
             k += 1
