@@ -348,6 +348,15 @@ def test_core_round_trip_and_checks(calibrated: dict[str, Any], tmp_path: Path) 
     assert not (tmp_path / "b.yaml").exists()
 
 
+def test_jointfit_urdf_reads_a_node_file(calibrated: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
+    from jointfit_core.urdf import urdf_from_calibrations
+    from jointfit_ros.urdf_cli import urdf_main
+
+    assert urdf_main([str(calibrated["path"])]) == 0
+    expected = urdf_from_calibrations([j["calibration"] for j in calibrated["doc"]["joints"].values()])
+    assert capsys.readouterr().out == expected and expected.count("<joint ") == 6 * 2 + 2 * 2
+
+
 def test_the_node_file_and_per_joint_files_are_not_both_set(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"node's calibration file and r_knee\.calibration_file are set"):
         _config(tmp_path / "subject.yaml", **{"r_knee.calibration_file": str(tmp_path / "knee.yaml")})
