@@ -501,8 +501,9 @@ class JointRunner:
         -----
         Per frame only where the sequential path needs the per-frame
         output or check: a loaded calibration's templates are compared with
-        the first fully visible frames (:meth:`_check_layout`); the hinge sign (``axis_toward_marker``) is fixed on the
-        first output after the first estimate, so while it is not fixed and
+        the first fully visible frames (:meth:`_check_layout`); the hinge
+        sign (``axis_toward_marker``) is fixed on the first output after
+        the first estimate, so while it is not fixed and
         an estimate exists, frames go through :meth:`process` one by one
         until it is. ``outputs`` counts the frames that would have had one
         (an estimate exists and the parent was posed). A block the

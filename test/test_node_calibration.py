@@ -301,12 +301,30 @@ def test_a_joint_that_cannot_save_keeps_its_entry(calibrated: dict[str, Any], tm
     # auto_freeze saves through the node file, only its own joint: the others keep their entries as they are
     by["r_knee"].reset()
     assert by["r_hip"].saver is not None
-    assert by["r_hip"].saver() == f"r_hip: saved {path}"
+    assert by["r_hip"].saver() == str(path)  # as a per-joint save says it: "auto_freeze: frozen, saved <path>"
     again = load_node_calibration(path)
     assert {n: j["calibration"] for n, j in again["joints"].items() if n != "r_hip"} == {
         n: j["calibration"] for n, j in saved["joints"].items() if n != "r_hip"
     }
     _assert_same(again, calibrated["doc"])
+
+
+def test_auto_freeze_writes_its_joints_entry_of_the_node_file(tmp_path: Path) -> None:
+    path = tmp_path / "subject.yaml"
+    cfg = _config(path, **{"r_hip.target_sd": 0.05, "r_hip.auto_freeze": True})
+    runners, router, _ = _start(cfg)  # (the store is wired into the runners)
+    _, raws = _raws(8.0)
+    for start in range(0, len(raws), 100):
+        router.markers_many(raws[start : start + 100])
+    for r in runners:
+        assert r.estimate(force=True), r.last_error
+    hip = runners[0]
+    assert hip.cfg.name == "r_hip" and hip.status().level == 0 and hip.done, hip.status().message
+    assert hip.auto_freeze() == f"auto_freeze: frozen, saved {path}"
+    assert hip.estimator.frozen and not runners[1].estimator.frozen
+    doc = load_node_calibration(path)
+    assert list(doc["joints"]) == ["r_hip"] and list(doc["segments"]) == ["PELV", "RTHI"]
+    assert doc["joints"]["r_hip"]["calibration"] == hip.calibration()
 
 
 def test_a_failed_write_leaves_the_file_and_its_backup(calibrated: dict[str, Any], tmp_path: Path,
