@@ -58,6 +58,10 @@ class SegmentFrames:
     labels : mapping, optional
         Segment names by marker list (the node's configured ``segments``); the
         others are named by :func:`~jointfit_core.urdf.segment_names`.
+    primary : int, optional
+        Only the first ``primary`` joints may own a segment that one of them
+        has (the others join it; a segment none of them has is owned by the
+        rule among the rest). Default: all joints may.
 
     Attributes
     ----------
@@ -69,7 +73,12 @@ class SegmentFrames:
         Per segment, every (joint, side) that has it, the owner first.
     """
 
-    def __init__(self, joints: Sequence[SegmentJoint], labels: Mapping[tuple[str, ...], str] | None = None) -> None:
+    def __init__(
+        self,
+        joints: Sequence[SegmentJoint],
+        labels: Mapping[tuple[str, ...], str] | None = None,
+        primary: int | None = None,
+    ) -> None:
         self.joints = list(joints)
         lists = [m for j in self.joints for m in (j.parent_markers, j.child_markers)]
         named = segment_names(lists, labels)
@@ -79,11 +88,13 @@ class SegmentFrames:
         for i, j in enumerate(self.joints):
             for side, markers in enumerate((j.parent_markers, j.child_markers)):
                 self.members[index[markers]].append((i, side))
+        first = len(self.joints) if primary is None else primary
         for entry in self.members:  # the owner first: the first joint with it as the child, else the first
-            children = [m for m in entry if m[1] == 1]
-            if children:
-                entry.remove(children[0])
-                entry.insert(0, children[0])
+            candidates = [m for m in entry if m[0] < first] or entry
+            children = [m for m in candidates if m[1] == 1]
+            owner = children[0] if children else candidates[0]
+            entry.remove(owner)
+            entry.insert(0, owner)
         self.owner = [entry[0] for entry in self.members]
         self._segment_of = {(i, side): s for s, entry in enumerate(self.members) for i, side in entry}
         J, K = len(self.joints), max((len(e) for e in self.members), default=1)

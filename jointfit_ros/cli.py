@@ -22,7 +22,9 @@ the file's labels are the marker names), and writes to ``DIR`` (default
 
 * ``<joint>.calibration.yaml``: the calibration the node loads (copy it to the
   joint's ``calibration_file``, or pass ``--write-calibration`` to write it
-  there, keeping the previous file as ``.bak``); written only for joints with
+  there, keeping the previous file as ``.bak``; with the node's
+  ``calibration_file`` the identified joints all go to that one file,
+  :mod:`jointfit_core.node_calibration`); written only for joints with
   an identifiable estimate;
 * ``summary.json``: estimates in the parent and child segment frames, their
   covariances and standard deviations, residuals, verdicts and counters;
@@ -68,11 +70,13 @@ from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
 from jointfit_core.errors import JointfitError
 from jointfit_core.io import METRES_PER_UNIT
+from jointfit_core.node_calibration import node_calibration, save_node_calibration
 from jointfit_core.urdf import urdf_from_calibrations
 
 from .angles_export import joint_angles_csv
 from .export import EXPORT_FORMATS, check_exportable, export_files
 from .html_report import html_page
+from .naming import node_path
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, read_marker_file, run_fit, with_file_marker_names
 from .params import calibration_path, node_config, params_from_file
 from .report import fit_summary, joint_reports, length_unit
@@ -133,7 +137,8 @@ def _fit_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--write-calibration",
         action="store_true",
-        help="also write each identified joint's calibration to its configured calibration_file (old one kept as .bak)",
+        help="also write each identified joint's calibration to its configured calibration_file, or all of them "
+        "to the node's calibration_file (old one kept as .bak)",
     )
     p.add_argument(
         "--single-process",
@@ -293,6 +298,14 @@ def fit_main(argv: Sequence[str]) -> int:
         write_all_or_nothing(out_dir, files)
         installed = []
         if opts.write_calibration:
+            if cfg.calibration_file and calibrations:  # the node's one file: every identified joint
+                doc = node_calibration(
+                    [calibrations[j.name] for j in cfg.joints if j.name in calibrations],
+                    node=node_path(opts.node_name) if opts.node_name else "",
+                    units=cfg.units,
+                    segment_labels=cfg.segment_labels(),
+                )
+                installed.append(str(save_node_calibration(calibration_path(cfg.calibration_file), doc)))
             for j in cfg.joints:
                 if j.name in calibrations and j.calibration_file:
                     installed.append(str(save_calibration(calibration_path(j.calibration_file), calibrations[j.name])))

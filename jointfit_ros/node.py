@@ -44,6 +44,7 @@ from jointfit_core.estimator import JointOutput, SolveRequest
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 
 from .activity import InputActivity
+from .calibration_store import NodeCalibrationFile
 from .conversions import (
     axis_arrow_marker,
     axis_pose_bytes,
@@ -126,6 +127,14 @@ class JointfitNode(Node):
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.cfg.qos_depth, reliability=reliability)
 
         self.runners = {j.name: JointRunner(j, self.cfg) for j in self.cfg.joints}
+        self.calibration_file: NodeCalibrationFile | None = None
+        if self.cfg.calibration_file:
+            self.calibration_file = NodeCalibrationFile(
+                self.cfg.calibration_file, list(self.runners.values()), self.get_fully_qualified_name(), self.cfg.units
+            )
+            self.calibration_file.load()
+            for note in self.calibration_file.notes:
+                self.get_logger().info(note)
         for name, runner in self.runners.items():
             for note in runner.load_notes:
                 self.get_logger().info(f"{name}: {note}")
@@ -237,6 +246,8 @@ class JointfitNode(Node):
             self.cfg = dataclasses.replace(self.cfg, **changes)
             self.router.cfg = self.cfg
             self.router.timeline.max_jump_ns = round(self.cfg.max_stamp_jump * 1e9)
+            if self.calibration_file is not None:
+                self.calibration_file.units = self.cfg.units  # the unit the next save records
             for runner in self.runners.values():
                 runner.node = self.cfg
                 if runner.matcher is not None:
@@ -610,6 +621,16 @@ class JointfitNode(Node):
         return response
 
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if self.calibration_file is not None:
+            try:
+                results = self.calibration_file.save()
+                response.success = not any(": not saved:" in r for r in results)
+            except (JointfitError, OSError) as exc:
+                results = [f"not saved: {exc}"]
+                response.success = False
+            response.message = "; ".join(results)
+            self.get_logger().info(response.message)
+            return response
         results = []
         ok = True
         for runner in self.runners.values():

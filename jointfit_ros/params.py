@@ -264,6 +264,15 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         maximum=3600.0,
     ),
     ParamSpec(
+        "calibration_file",
+        "string",
+        "",
+        "One YAML file for the whole node (version 2: its segments, each in one frame, and every joint's "
+        "calibration; `~` and environment variables are expanded): `~/save` and auto_freeze write it, and it is "
+        "loaded at start when it exists (the joints found in it start frozen). Not together with "
+        "`<joint>.calibration_file` (the per-joint files, version 1). Empty: none.",
+    ),
+    ParamSpec(
         "stale_after",
         "double",
         3.0,
@@ -436,7 +445,7 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "string",
         "",
         "YAML file for `~/save` (`~` is expanded); loaded at start when it exists (the joint then starts frozen). "
-        "Empty: none.",
+        "Not together with the node's calibration_file. Empty: none.",
     ),
     ParamSpec(
         "axis_toward_marker",
@@ -490,9 +499,9 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "auto_freeze",
         "bool",
         False,
-        "Once done (needs target_sd > 0): freeze the joint and save its calibration_file (when set) by itself, "
-        "once (logged; after `~/freeze` false it waits for `~/reset`); false (default): you call `~/freeze` "
-        "and `~/save`.",
+        "Once done (needs target_sd > 0): freeze the joint and save its calibration_file (or its entry of the "
+        "node's calibration_file; when set) by itself, once (logged; after `~/freeze` false it waits for "
+        "`~/reset`); false (default): you call `~/freeze` and `~/save`.",
     ),
 )
 
@@ -605,6 +614,7 @@ class NodeConfig:
     max_stamp_jump: float = 1.0
     stale_after: float = 3.0
     segments: tuple[SegmentConfig, ...] = ()
+    calibration_file: str = ""
 
     def segment_labels(self) -> dict[tuple[str, ...], str]:
         """The configured segments' names by marker list (empty without ``segments``)."""
@@ -851,12 +861,15 @@ def _segment_configs(
 
 
 def _check_segment_names(segments: Sequence[str], joints: Sequence[str]) -> None:
-    """Segment names: valid, each once, none a joint's (their parameters would share a prefix)."""
+    """Segment names: valid, each once, none a joint's or a node parameter's (their keys would share a prefix)."""
+    node_names = {s.name for s in NODE_PARAMS}
     for name in segments:
         if not _NAME.match(name):
             raise ConfigError(f"segments: {name!r} is not a valid name (letters, digits and _; starting with a letter)")
         if name in joints:
             raise ConfigError(f"segments: {name!r} is also a joint's name; a segment needs a name of its own")
+        if name in node_names:
+            raise ConfigError(f"segments: {name!r} is the name of a node parameter; give the segment another name")
     if len(set(segments)) != len(segments):
         raise ConfigError(f"segments: a name is listed twice: {list(segments)!r}")
 
@@ -955,9 +968,12 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
     joints = v["joints"]
     if not joints:
         raise ConfigError("joints: expected at least one joint name, got none")
+    node_names = {s.name for s in NODE_PARAMS}
     for j in joints:
         if not _NAME.match(j):
             raise ConfigError(f"joints: {j!r} is not a valid name (letters, digits and _; starting with a letter)")
+        if j in node_names:  # `units: m` and `units: {type: ball}` cannot both be in a parameter file
+            raise ConfigError(f"joints: {j!r} is the name of a node parameter; give the joint another name")
     if len(set(joints)) != len(joints):
         raise ConfigError(f"joints: a name is listed twice: {joints!r}")
     _check_segment_names(v["segments"], joints)
@@ -984,6 +1000,14 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
                     "file of its own (saves would overwrite each other)"
                 )
             files[key] = c.name
+    if v["calibration_file"]:
+        calibration_path(v["calibration_file"])  # an unset environment variable: an error at start
+        if files:
+            raise ConfigError(
+                f"calibration_file: the node's calibration file and "
+                f"{', '.join(f'{n}.calibration_file' for n in files.values())} are set; give the node's file "
+                "(all joints, version 2) or per-joint files (version 1), not both"
+            )
     if not names and any(c.parent_markers or c.child_markers for c in configs):
         raise ConfigError("marker_names: expected the names of the points of marker_topic, got none")
     return NodeConfig(
@@ -1012,6 +1036,7 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
         max_stamp_jump=v["max_stamp_jump"],
         stale_after=v["stale_after"],
         segments=tuple(segments.values()),
+        calibration_file=v["calibration_file"],
     )
 
 

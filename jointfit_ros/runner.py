@@ -14,6 +14,7 @@ import math
 import shutil
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -248,6 +249,8 @@ class JointRunner:
         self.last_error = ""
         self.loaded_from: str = ""
         self.load_notes: list[str] = []  # said once at start: settings of the file that differ, files cleaned
+        #: Why the calibration given at start was refused or discarded, in /diagnostics until the next save.
+        self.load_problem = ""
         self._layout_frames = False  # a loaded calibration's templates are still to be compared with live markers
         self._layout_seen: list[FloatArray] = []
         self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
@@ -260,6 +263,9 @@ class JointRunner:
         self._from_row = node.marker_index(cfg.axis_from_marker) if cfg.axis_from_marker else -1
         self._cluster_rows = np.concatenate([self.parent_rows, self.child_rows])
         self.estimator = self._new_estimator()
+        #: What auto_freeze calls to save (returns the path written, in words): :meth:`save` with a
+        #: calibration_file, else None; the node's calibration file sets its own.
+        self.saver: Callable[[], str] | None = self.save if cfg.calibration_file else None
         #: The consistency check across movement blocks of the window (run at diagnostics time).
         self.consistency = ConsistencyMonitor()
         #: Sampled recent frames for the anatomical results and range of motion in ``/diagnostics``
@@ -311,31 +317,79 @@ class JointRunner:
             self.load_notes.append(f"removed {len(removed)} stale temporary file(s) of killed saves beside {path}")
         if not path.exists():
             return
+        data: Any = None
         problem = ""
-        est: OnlineJoint | None = None
         if not path.is_file():
             problem = "it is not a regular file"
         else:
             try:
                 data = load_calibration(path)
+            except (InputError, OSError, UnicodeDecodeError) as exc:
+                problem = str(exc)
+        self.restore(data, f"file {path}", str(path), problem)
+
+    def restore(self, data: Any, label: str, source: str, problem: str = "") -> bool:
+        """Make a saved calibration (a per-joint file's content) this joint's estimate, frozen; False when refused.
+
+        The checks of :meth:`_load`: the joint's record (another joint's,
+        other markers or pose topics), the format and version, finite and
+        plausible values, the joint type, the marker counts, identifiability;
+        the live markers are compared with its templates over the first
+        frames (:meth:`_check_layout`).
+
+        Parameters
+        ----------
+        data : object
+            The calibration (a dict as :meth:`save` writes, with :meth:`identity`), or anything (refused).
+        label : str
+            Where it comes from in the messages (``file /path/hip.yaml``).
+        source : str
+            :attr:`loaded_from` once loaded.
+        problem : str
+            Why it could not even be read (refused with this reason).
+
+        Returns
+        -------
+        bool
+            Loaded. Refused: :attr:`last_error` says why (``calibration <label> not loaded (kept as it is): ...``),
+            :attr:`unloadable` is set and the joint estimates.
+        """
+        est: OnlineJoint | None = None
+        if not problem:
+            try:
+                if not isinstance(data, dict):
+                    raise InputError(f"expected a calibration mapping, got {type(data).__name__}")
                 problem = self._foreign(data)
                 if not problem:
                     est = OnlineJoint.from_dict(data)
-            except (InputError, OSError, UnicodeDecodeError) as exc:
+            except InputError as exc:
                 problem = str(exc)
         if est is not None and not problem:
             problem = self._unusable(est)
         if problem or est is None:
-            self.last_error = f"calibration file {path} not loaded (kept as it is): {problem}"
+            self.last_error = f"calibration {label} not loaded (kept as it is): {problem}"
+            self.load_problem = self.last_error
             self._unloadable = True
-            return
+            return False
         self.load_notes += _settings_differences(data, self.cfg)
         self.estimator = est
         self._layout_frames = True  # until the live markers are compared with the templates
+        self._layout_seen = []
         self._sign_fixed = True  # the saved estimate carries its sign
         if self.cfg.axis_toward_marker:
-            self.sign_text = f"{self._sign_words()} (as saved in {path})"
-        self.loaded_from = str(path)
+            self.sign_text = f"{self._sign_words()} (as saved in {source})"
+        self.loaded_from = source
+        return True
+
+    @property
+    def unloadable(self) -> bool:
+        """A calibration given to this joint was refused or discarded since the last save (keep it aside before saving)."""
+        return self._unloadable
+
+    def saved_unloadable(self) -> None:
+        """The refused calibration has been kept aside (by whoever saves): :attr:`unloadable` is cleared."""
+        self._unloadable = False
+        self.load_problem = ""
 
     def _check_layout(self, parent: FloatArray, child: FloatArray) -> None:
         """Compare a loaded calibration's templates with the first fully visible frames; refuse a changed set-up.
@@ -371,7 +425,7 @@ class JointRunner:
         self.sign_text = ""
         self.loaded_from = ""
         self._unloadable = True
-        self.last_error = (
+        self.last_error = self.load_problem = (
             f"calibration file {path} discarded (kept as it is): the live markers' distances differ from its "
             f"templates' by up to {error.max():.3g} (tolerance {tol:.3g}): markers reordered, renamed or moved "
             "since it was saved; estimating anew"
@@ -446,8 +500,10 @@ class JointRunner:
         Notes
         -----
         Per frame only where the sequential path needs the per-frame
-        output: the hinge sign (``axis_toward_marker``) is fixed on the
-        first output after the first estimate, so while it is not fixed and
+        output or check: a loaded calibration's templates are compared with
+        the first fully visible frames (:meth:`_check_layout`); the hinge
+        sign (``axis_toward_marker``) is fixed on the first output after
+        the first estimate, so while it is not fixed and
         an estimate exists, frames go through :meth:`process` one by one
         until it is. ``outputs`` counts the frames that would have had one
         (an estimate exists and the parent was posed). A block the
@@ -464,8 +520,11 @@ class JointRunner:
                 self.markers_frame(int(stamps_ns[k]), frames[k])
             return
         parent, child = frames[:, self.parent_rows], frames[:, self.child_rows]
-        est = self.estimator
         k = 0
+        while k < n and self._layout_frames:  # a loaded calibration: compared with the live markers first
+            self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
+            k += 1
+        est = self.estimator  # (a new one when the loaded calibration was discarded)
         while k < n and not self._sign_fixed and est.solution is not None and est.solution.identifiable:
             self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
             k += 1
@@ -779,16 +838,27 @@ class JointRunner:
         path = self.calibration_path
         if path is None:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
-        self._check_usable("save")
-        data = self.estimator.to_dict()
-        data.update(self.identity())
+        data = self.calibration()
         kept = ""
         if self._unloadable and path.exists():
             aside = path.with_name(f"{path.name}.unloadable-{time.strftime('%Y%m%d-%H%M%S')}")
             shutil.copy2(path, aside)
             kept = f" (the unloadable previous file is kept as {aside})"
-        self._unloadable = False
+        self.saved_unloadable()
         return str(save_calibration(path, data)) + kept
+
+    def calibration(self) -> dict[str, Any]:
+        """The joint's calibration as :meth:`save` writes it: the estimator's (settings, templates, estimate) and its record.
+
+        Raises
+        ------
+        JointfitError
+            No estimate yet, or one that may not be saved (not identifiable, hinge sign not chosen).
+        """
+        self._check_usable("save")
+        data = self.estimator.to_dict()
+        data.update(self.identity())
+        return data
 
     # ------------------------------------------------------------------ diagnostics
 
@@ -824,6 +894,8 @@ class JointRunner:
             values[f"{side} gated (%)"] = round(100.0 * n / est.n_frames_seen, 2) if est.n_frames_seen else 0.0
         if self.loaded_from:
             values["calibration loaded from"] = self.loaded_from
+        if self.load_problem:
+            values["calibration not loaded"] = self.load_problem
         sol = est.solution
         waiting = est.status()
         if sol is None:
@@ -917,9 +989,9 @@ class JointRunner:
             self.auto_note = f"auto_freeze: not frozen: {exc}"
             return self.auto_note
         note = "auto_freeze: frozen"
-        if self.cfg.calibration_file:
+        if self.saver is not None:
             try:
-                note += f", saved {self.save()}"
+                note += f", saved {self.saver()}"
             except (JointfitError, OSError) as exc:
                 note += f", not saved: {exc}"
         self.auto_note = note

@@ -1,5 +1,7 @@
 """``jointfit urdf CALIBRATION... > subject.urdf``: a URDF of saved calibrations (:mod:`jointfit_core.urdf`).
 
+A calibration is a joint's file or a node's (:mod:`jointfit_core.node_calibration`: every joint in it).
+
 Exit status: 0 written to stdout, 1 a file cannot be read or the calibrations do
 not make one tree (one line on stderr), 2 usage.
 """
@@ -11,6 +13,7 @@ from collections.abc import Sequence
 
 from jointfit_core.calibration import load_calibration
 from jointfit_core.errors import JointfitError
+from jointfit_core.node_calibration import NODE_CALIBRATION_FORMAT, check_node_calibration
 from jointfit_core.urdf import urdf_from_calibrations
 
 USAGE = "usage: jointfit urdf [--name ROBOT] CALIBRATION.yaml... > subject.urdf"
@@ -29,7 +32,15 @@ def urdf_main(argv: Sequence[str]) -> int:
             return 2
         name, args = args[1], args[2:]
     try:
-        text = urdf_from_calibrations([load_calibration(p) for p in args], robot_name=name)
+        calibrations = []
+        for path in args:
+            data = load_calibration(path)
+            if data.get("format") == NODE_CALIBRATION_FORMAT:  # a node's file: every joint in it
+                doc = check_node_calibration(data, f"node calibration {path}")
+                calibrations += [entry["calibration"] for entry in doc["joints"].values()]
+            else:
+                calibrations.append(data)
+        text = urdf_from_calibrations(calibrations, robot_name=name)
     except (JointfitError, OSError, ValueError) as exc:
         print(f"jointfit urdf: error: {exc}", file=sys.stderr)
         return 1

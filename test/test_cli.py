@@ -188,6 +188,31 @@ def test_write_calibration_installs_for_the_node(
     np.testing.assert_allclose(runner.estimator.solution.centre_parent, saved["centre_parent"], rtol=1e-12)
 
 
+def test_write_calibration_writes_the_node_file_when_configured(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    from jointfit_core.node_calibration import load_node_calibration
+    from jointfit_ros.calibration_store import NodeCalibrationFile
+
+    frames, stamps = recording
+    bag = write_marker_bag(tmp_path / "rec", frames, stamps, topic="/mocap/markers")
+    node_file = tmp_path / "installed" / "subject.yaml"
+    config = _config(tmp_path / "params.yaml", extra=f'    calibration_file: "{node_file}"\n')
+    config.write_text(config.read_text().replace(f'calibration_file: "{tmp_path / "installed" / "hip.yaml"}"', ""))
+    code, stdout, _ = _fit(capsys, "fit", bag, "--config", config, "--out", tmp_path / "o", "--no-report", "--write-calibration")
+    assert code == 0 and f"installed calibration {node_file}" in stdout, stdout
+    doc = load_node_calibration(node_file)
+    assert list(doc["joints"]) == ["hip", "knee"] and doc["units"] == "m"
+    for name in ("hip", "knee"):  # each joint's entry is the fit's calibration
+        assert doc["joints"][name]["calibration"] == load_calibration(tmp_path / "o" / f"{name}.calibration.yaml")
+    # the node loads it: both joints frozen with the fitted estimates
+    cfg = node_config(params_from_file(config))
+    runners = [JointRunner(j, cfg) for j in cfg.joints]
+    store = NodeCalibrationFile(cfg.calibration_file, runners, "/jointfit", cfg.units)
+    store.load()
+    assert store.problem == "" and all(r.estimator.frozen for r in runners), [r.last_error for r in runners]
+
+
 @pytest.mark.parametrize(
     ("fixture", "config", "joint", "identifiable"),
     [

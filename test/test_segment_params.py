@@ -108,6 +108,7 @@ def test_a_pose_topic_segment_is_the_joints_pose_topic() -> None:
         ({"knee.child": "thigh"}, r"knee: parent and child are the same segment 'thigh'"),
         ({"segments": ["pelvis", "thigh", "shank", "hip"], "hip.markers": ["S1"]}, r"'hip' is also a joint's name"),
         ({"segments": ["pelvis", "thigh", "thigh"]}, r"segments: a name is listed twice"),
+        ({"segments": ["pelvis", "thigh", "shank", "units"], "units.markers": ["S1"]}, r"'units' is the name of a node"),
         ({"segments": ["pelvis", "thigh", "2shank"]}, r"'2shank' is not a valid name"),
         ({"thigh.marker": NAMES[4:8]}, r"thigh\.marker: unknown parameter; did you mean 'thigh\.markers'\?"),
         ({"segments": ["pelvis", "thigh"]}, r"shank\.markers: unknown parameter; 'shank' is not in joints"),
