@@ -233,8 +233,8 @@ def tables(results: list[tuple[Case, dict[str, list[float]]]]) -> list[str]:
         "sd: root mean square over the trials of sqrt(tr cov); (statistical): the part from white marker "
         "noise and the residuals, without the soft-tissue prior (`-` where the fit does not report it). "
         "Hinge point e/2: the off-axis part of the point error against the point covariance projected on the "
-        "plane normal to the estimated axis (until 2026-12-02: on its two largest eigen-directions, which mix in "
-        "the point's slide along the axis and read 0.09-0.36 where this reads 0.15-0.39). refused: trials the fit rejected (InputError: e.g. no well-posed frames when the "
+        "plane normal to the estimated axis (until 2026-12-02 against its two largest eigen-directions, which mix in "
+        "the point's slide along the axis and under-read the calibration about 2-3x). refused: trials the fit rejected (InputError: e.g. no well-posed frames when the "
         "artefact is read as marker noise); the means are over the others.",
     ]
 
