@@ -1,7 +1,9 @@
 """The node's solver process: joint estimates solved off the executor thread.
 
 Solving a window (:func:`~jointfit_core.estimator.solve_window`) takes about
-0.3 ms for a ball joint and 0.6 ms for a hinge. On the executor thread, every
+0.3 ms for a ball joint and 0.4 ms for a hinge with rigid attachment, 2-3 ms
+with skin attachment (the default: the soft-tissue part's finite differences).
+On the executor thread, every
 solve delays the marker frames that arrive meanwhile, and those delays set the
 node's p99 latency (``bench/node_latency.py``). Python threads would not help:
 the solve holds the GIL. So at an estimate tick the node sends the snapshots
@@ -127,7 +129,7 @@ class SolverProcess:
 
     @property
     def idle(self) -> bool:
-        """Whether the worker can take a request now."""
+        """Whether the worker can take a batch now (none is being solved)."""
         return self.alive and self._keys is None
 
     def submit(self, batch: Batch) -> bool:
@@ -159,7 +161,7 @@ class SolverProcess:
         return True
 
     def ready(self, timeout: float = 0.0) -> bool:
-        """Whether :meth:`collect` has an answer (or the worker's end) to report; waits up to ``timeout`` s."""
+        """Whether :meth:`collect` has the batch's answers (or the worker's end) to report; waits up to ``timeout`` s."""
         if not self.alive or self._keys is None or self._conn is None:
             return False
         try:
