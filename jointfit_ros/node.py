@@ -162,6 +162,7 @@ class JointfitNode(Node):
 
         # Inputs.
         self.router = MessageRouter(self.cfg, self.runners.values(), clock=time.monotonic_ns)
+        self.router.defer_bookkeeping = True  # _on_markers publishes a frame's outputs before its bookkeeping
         self.counters = self.router.counters
         self._warned: set[str] = set()
         self._status_log = StatusLog()  # WARN/ERROR statuses on the console, once per change
@@ -285,14 +286,17 @@ class JointfitNode(Node):
             self.router.last_problem = None
 
     def _on_markers(self, raw: bytes) -> None:
-        routed = self.router.markers(raw)
-        for r in routed:
-            self._publish_world(r)
-        segments, joint_states = self._subscribed()
-        if joint_states:
-            self._publish_joint_states(routed)
-        if segments and self.router.routed_stamp_ns is not None:
-            self._publish_segments(self.router.routed_stamp_ns)
+        routed = self.router.markers(raw)  # (defer_bookkeeping: the outputs first, then after_outputs)
+        try:
+            for r in routed:
+                self._publish_world(r)
+            segments, joint_states = self._subscribed()
+            if joint_states:
+                self._publish_joint_states(routed)
+            if segments and self.router.routed_stamp_ns is not None:
+                self._publish_segments(self.router.routed_stamp_ns)
+        finally:
+            self.router.after_outputs()  # stamp gaps, live-geometry samples: after the frame's outputs are out
         self._report_problem()
 
     def _publish_segments(self, stamp_ns: int) -> None:
