@@ -249,7 +249,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"(installing the {k} answers) holds the frames' thread {1e6 * med('batched', 'longest_tick_s'):.0f} us, "
         f"against {1e6 * med(f'{k} single', 'longest_tick_s'):.0f} us for one joint's. Wall times are back to back "
         "here; in the node the single requests took a timer tick each way, so the last joint of a cycle waited a "
-        "whole estimate_period.",
+        "whole estimate_period. The worker runs at idle priority (SCHED_IDLE): on a busy machine (the load average "
+        "above) its wall time stretches beyond its CPU time.",
         "",
     ])  # fmt: skip
     print(text)

@@ -37,9 +37,11 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import fields
 from multiprocessing.connection import Connection
 from pathlib import Path
+
+import numpy as np
 
 from jointfit_core.errors import JointfitError
 from jointfit_core.estimator import SolveRequest, SolveResult, solve_window
@@ -186,7 +188,9 @@ class SolverProcess:
             if self.alive and self._conn.poll(0):  # (also when idle: a worker that died is noticed)
                 for key, answer in self._conn.recv():
                     if isinstance(answer, SolveResult):  # unpickled arrays are writable: make them read-only again
-                        answer = replace(answer, solution=replace(answer.solution))
+                        _read_only(answer.solution)
+                        if answer.statistical is not None:
+                            _read_only(answer.statistical)
                     answers.append((key, answer))
                 self._keys = None
         except (EOFError, OSError) as exc:
@@ -221,6 +225,14 @@ class SolverProcess:
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait()
+
+
+def _read_only(solution: object) -> None:
+    """Make the array fields of an unpickled solution read-only, as the estimator's own (in place: no copies)."""
+    for f in fields(solution):  # type: ignore[arg-type]
+        value = getattr(solution, f.name)
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
 
 
 def serve(fd: int) -> None:

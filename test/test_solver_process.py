@@ -27,15 +27,18 @@ from jointfit_ros.solver_process import SolverProcess, solve_batch
 FloatArray = NDArray[np.float64]
 
 
-def _joint(kind: str, frames: int = 1500, seed: int = 5) -> tuple[OnlineJoint, FloatArray, FloatArray]:
+def _joint(
+    kind: str, frames: int = 1500, seed: int = 5, attachment: str = "rigid"
+) -> tuple[OnlineJoint, FloatArray, FloatArray]:
     """An estimator fed ``frames`` frames of a synthetic rig (0.5 mm noise), and the next 200 frames."""
     rng = np.random.default_rng(seed)
     m = two_segment_motion(rng, kind=kind)
-    p, c = m.markers_at(np.arange(frames + 200) / 100.0)
+    t = np.arange(frames + 200) / 100.0
+    p, c = m.markers_at(t)
     p = p + rng.normal(0.0, 0.5, p.shape)
     c = c + rng.normal(0.0, 0.5, c.shape)
-    est = OnlineJoint(kind, 1000)
-    est.update_many(p[:frames], c[:frames])
+    est = OnlineJoint(kind, 1000, attachment=attachment)
+    est.update_many(p[:frames], c[:frames], t[:frames] if attachment == "skin" else None)
     return est, p[frames:], c[frames:]
 
 
@@ -118,11 +121,15 @@ def _answer(sp: SolverProcess, timeout: float = 30.0) -> list[tuple[str, SolveRe
 
 
 def _requests(kinds: str, seed: int = 7) -> list[tuple[str, OnlineJoint, SolveRequest]]:
-    """``(key, estimator, request)`` of one joint per letter of ``kinds`` (b: ball, h: hinge), each its own rig."""
+    """``(key, estimator, request)`` of one joint per letter of ``kinds``, each its own rig.
+
+    b / h: a rigid ball / hinge; B / H: with skin attachment (the soft-tissue part, a second solution).
+    """
     out = []
     for k, letter in enumerate(kinds):
-        kind = {"b": "ball", "h": "hinge"}[letter]
-        est, _, _ = _joint(kind, frames=1000 + 100 * k, seed=seed + k)
+        kind = {"b": "ball", "h": "hinge"}[letter.lower()]
+        attachment = "skin" if letter.isupper() else "rigid"
+        est, _, _ = _joint(kind, frames=1000 + 100 * k, seed=seed + k, attachment=attachment)
         request = est.solve_request()
         assert request is not None
         out.append((f"{kind}{k}", est, request))
@@ -130,7 +137,7 @@ def _requests(kinds: str, seed: int = 7) -> list[tuple[str, OnlineJoint, SolveRe
 
 
 def test_solver_process_equals_in_process(solver: SolverProcess) -> None:
-    joints = _requests("bhhbbh")
+    joints = _requests("bhHBbh")
     batch = [(key, request) for key, _, request in joints]
     assert solver.idle and solver.submit(batch)
     assert not solver.idle and not solver.submit(batch)  # one batch at a time
@@ -139,11 +146,17 @@ def test_solver_process_equals_in_process(solver: SolverProcess) -> None:
     assert solver.idle and solver.collect() == []
     for (key, answer), (_, est, request) in zip(answers, joints, strict=True):
         assert isinstance(answer, SolveResult), key
-        _assert_identical(answer.solution, solve_window(request).solution)
-        assert answer.noise_std == solve_window(request).noise_std
-        for v in _fields(answer.solution).values():
-            if isinstance(v, np.ndarray):
-                assert not v.flags.writeable  # as the estimator's own results
+        local = solve_window(request)
+        _assert_identical(answer.solution, local.solution)
+        assert answer.noise_std == local.noise_std
+        assert (answer.statistical is None) == (local.statistical is None) == (request.attachment == ("rigid", "rigid"))
+        if answer.statistical is not None:  # skin: the statistical part too
+            _assert_identical(answer.statistical, local.statistical)
+            assert answer.artefact_scale == local.artefact_scale
+        for part in (answer.solution, answer.statistical or answer.solution):
+            for v in _fields(part).values():
+                if isinstance(v, np.ndarray):
+                    assert not v.flags.writeable  # as the estimator's own results
         assert est.install(answer)
     # the next batch goes to the same worker
     proc = solver._proc
