@@ -19,7 +19,9 @@ same 56-marker stream, so only the joint count changes. Shared segments are repe
 route, every joint's :class:`~jointfit_ros.runner.JointRunner` and ``OnlineJoint.update``), then
 each output encoded as CDR (``pose_with_covariance_bytes`` / ``axis_pose_bytes``), then the
 frame's ``~/segments`` (:class:`~jointfit_ros.segment_output.SegmentOutput`: the segment poses
-gathered and encoded; its share is given apart). Solves are not
+gathered and encoded; its share is given apart), then the bookkeeping that does not change the
+outputs (:meth:`MessageRouter.after_outputs`: stamp gaps, live-geometry samples), in the node's
+order; **to the outputs** is the CPU from the message to its joints' outputs encoded. Solves are not
 in it (the node runs them in its worker process): every 50 messages one joint is solved in turn,
 outside the timed spans. Before timing, ``WARM`` frames build the templates and the gate's history
 and every joint is solved, so that every frame of the timed part has an output per joint
@@ -78,8 +80,10 @@ class _Path:
         self.turn = 0
         self.outputs = 0
         self.segment_cpu = 0.0
+        self.to_outputs_cpu = 0.0
         for raw in warm:
             self.router.markers(raw)
+        self.router.defer_bookkeeping = True  # as the node: the bookkeeping after the outputs (after_outputs)
         for r in self.runners:
             if not r.estimate(force=True):
                 raise RuntimeError(f"{r.cfg.name}: no estimate after the warm-up: {r.last_error}")
@@ -91,6 +95,7 @@ class _Path:
             chunk = messages[start : start + SOLVE_EVERY]
             c0 = time.process_time()
             for raw in chunk:
+                f0 = time.process_time()
                 for routed in self.router.markers(raw):
                     out = routed.output
                     if out.direction is None:
@@ -102,9 +107,11 @@ class _Path:
                         )
                     self.outputs += 1
                 c1 = time.process_time()
+                self.to_outputs_cpu += c1 - f0
                 R, t = self.segments.poses()  # ~/segments, as the node encodes it after the joints
                 self.segments.pose_array(T0, "world", R, t)
                 self.segment_cpu += time.process_time() - c1
+                self.router.after_outputs()  # as the node: after the frame's outputs
             total += time.process_time() - c0
             self.runners[self.turn].estimate(force=True)
             self.turn = (self.turn + 1) % len(self.runners)
@@ -162,14 +169,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     med = {k: 1e6 * float(np.median(cpu[k])) for k in COUNTS}
     slope, intercept = np.polyfit(np.array(COUNTS, dtype=float), [med[k] for k in COUNTS], 1)
     seg_us = {k: 1e6 * paths[k].segment_cpu / (frames_per_round * rounds) for k in COUNTS}
+    out_us = {k: 1e6 * paths[k].to_outputs_cpu / (frames_per_round * rounds) for k in COUNTS}
     rows = [
         [f"{k}", f"{len(paths[k].segments.names)}", f"{med[k]:.0f}", f"{med[k] / k:.0f}", f"{med[k] / base_us:.1f}",
-         f"{seg_us[k]:.0f}", f"{100.0 * paths[k].outputs / (k * frames_per_round * rounds):.0f}"]
+         f"{out_us[k]:.0f}", f"{seg_us[k]:.0f}", f"{100.0 * paths[k].outputs / (k * frames_per_round * rounds):.0f}"]
         for k in COUNTS
     ]  # fmt: skip
     table = markdown_table(
-        ["joints", "segments", "CPU per frame (us)", "per joint (us)", "path / baseline", "of which ~/segments (us)",
-         "frames with output (%)"],
+        ["joints", "segments", "CPU per frame (us)", "per joint (us)", "path / baseline", "to the outputs (us)",
+         "of which ~/segments (us)", "frames with output (%)"],
         rows,
     )
     text = "\n".join([

@@ -194,7 +194,13 @@ def split_block(messages: Sequence[Message]) -> tuple[list[bytes], list[PoseMess
 
 
 def route_frame(
-    runners: Sequence[JointRunner], stamp_ns: int, frame_id: str, frame: FloatArray, time_ns: int | None = None
+    runners: Sequence[JointRunner],
+    stamp_ns: int,
+    frame_id: str,
+    frame: FloatArray,
+    time_ns: int | None = None,
+    *,
+    defer_samples: bool = False,
 ) -> list[Routed]:
     """Give one parsed marker frame (P, 3) to the joints in order; their outputs.
 
@@ -202,12 +208,14 @@ def route_frame(
     joints that name it in ``parent_chain`` / ``child_chain``. ``time_ns``:
     the estimators' time of the frame (:class:`~jointfit_ros.timeline.Timeline`),
     when it is not ``stamp_ns``; the outputs carry ``stamp_ns``.
+    ``defer_samples``: the joints' live-geometry samples are left for
+    :meth:`~jointfit_ros.runner.JointRunner.take_sample`.
     """
     out = []
     chain: dict[str, FloatArray] = {}
     t = stamp_ns if time_ns is None else time_ns
     for runner in runners:
-        result = runner.markers_frame(t, frame, chain)
+        result = runner.markers_frame(t, frame, chain, defer_sample=defer_samples)
         if result is not None:
             chain[runner.cfg.name] = result.position
             out.append(Routed(runner, stamp_ns, frame_id, result))
@@ -253,6 +261,12 @@ class MessageRouter:
         Marker messages can be parsed a block at a time, apart from the
         routing (:func:`parse_markers`, :meth:`route_parsed`): not
         ``chained`` and not ``unlabelled`` (labelled against the previous frame).
+    defer_bookkeeping : bool
+        False (default): :meth:`markers` does everything. True (the node, so
+        that it publishes a frame's outputs first): what does not change the
+        outputs (the stamp-gap count, the joints' live-geometry samples) is
+        left for :meth:`after_outputs`, which must follow before the next
+        message (else the frame's sample and stamp gap are lost, never wrong).
     """
 
     def __init__(
@@ -278,6 +292,8 @@ class MessageRouter:
         self.routed_stamp_ns: int | None = None
         #: Frames of the marker topic that never arrived (gaps in its stamps), for ``/diagnostics``.
         self.gaps = StampGaps()
+        self._gap_stamp_ns: int | None = None  # the stamp a deferred markers() left for after_outputs()
+        self.defer_bookkeeping = False
         self._last_frame: FloatArray | None = None
         self.recorded: list[tuple[int, FloatArray]] | None = None
         self.timeline = Timeline(round(cfg.max_stamp_jump * 1e9), clock=clock, counters=self.counters)
@@ -558,15 +574,24 @@ class MessageRouter:
         return out
 
     def markers(self, raw: bytes) -> list[Routed]:
-        """A message of ``marker_topic``: the outputs of the joints it produced one for."""
+        """A message of ``marker_topic``: the outputs of the joints it produced one for.
+
+        With :attr:`defer_bookkeeping`, what does not change the outputs is
+        left for :meth:`after_outputs`.
+        """
+        defer_bookkeeping = self.defer_bookkeeping
         self.counters["messages"] += 1
         self.routed_stamp_ns = None
+        self._gap_stamp_ns = None
         got = self.frame(raw)
         if got is None:
             _note_dropped(self.marker_runners, 1)
             return []
         stamp_ns, frame_id, frame = got
-        self.gaps.add(stamp_ns)
+        if defer_bookkeeping:
+            self._gap_stamp_ns = stamp_ns
+        else:
+            self.gaps.add(stamp_ns)
         t = self._time(stamp_ns, self.cfg.marker_topic, self.marker_runners)
         if t is None:
             return []
@@ -574,7 +599,18 @@ class MessageRouter:
         self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
-        return route_frame(self.marker_runners, stamp_ns, frame_id, frame, time_ns=t)
+        return route_frame(self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping)
+
+    def after_outputs(self) -> None:
+        """The bookkeeping :meth:`markers` left with :attr:`defer_bookkeeping`: stamp gaps, live-geometry samples.
+
+        Nothing when there is none left (calling it twice does it once).
+        """
+        if self._gap_stamp_ns is not None:
+            self.gaps.add(self._gap_stamp_ns)
+            self._gap_stamp_ns = None
+        for runner in self.marker_runners:
+            runner.take_sample()
 
     def pose(self, topic: str, raw: bytes) -> list[Routed]:
         """A message of a pose topic: the outputs of the joints it produced one for."""

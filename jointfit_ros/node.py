@@ -172,6 +172,7 @@ class JointfitNode(Node):
 
         # Inputs.
         self.router = MessageRouter(self.cfg, self.runners.values(), clock=time.monotonic_ns)
+        self.router.defer_bookkeeping = True  # _on_markers publishes a frame's outputs before its bookkeeping
         self.counters = self.router.counters
         self._warned: set[str] = set()
         self._status_log = StatusLog()  # WARN/ERROR statuses on the console, once per change
@@ -188,7 +189,7 @@ class JointfitNode(Node):
 
         # Timers and services.
         self._solver = SolverProcess() if self.cfg.solver_process else None
-        self._requests: dict[str, SolveRequest] = {}  # the request the worker is answering, by joint
+        self._requests: dict[str, SolveRequest] = {}  # the requests the worker is answering, by joint
         self._jf_timers: dict[str, Any] = {}
         self._estimate_turn = -1  # the joint the estimate timer solved last
         self._rviz_turn = -1  # the joint whose RViz markers were published last
@@ -259,10 +260,11 @@ class JointfitNode(Node):
         """Each timer's period (s; 0: off) and callback, from the current parameters."""
         n = max(1, len(self.runners))
         return {
-            # one joint per tick, in turn: each joint is re-solved every estimate_period, and no
-            # tick blocks the frame callbacks for more than one joint's solve; with the solver
-            # process, sending a window and installing an answer take a tick each
-            "estimate": (self.cfg.estimate_period / n / (1 if self._solver is None else 2), self._on_estimate_timer),
+            # on the executor thread, one joint per tick, in turn: each joint is re-solved every
+            # estimate_period, and no tick blocks the frame callbacks for more than one joint's solve;
+            # with the solver process, every joint's due window goes in one request and the answers
+            # are installed at the next tick: a tick each, so each joint is re-solved every estimate_period
+            "estimate": (self.cfg.estimate_period / (n if self._solver is None else 2), self._on_estimate_timer),
             "diagnostics": (self.cfg.diagnostics_period, self._on_diagnostics_timer),
             "local": (1.0 / self.cfg.local_rate if self.cfg.local_rate > 0 else 0.0, self._on_local_timer),
             # one joint's markers per tick, in turn (each joint at rviz_rate): shorter ticks on the frames' thread
@@ -300,14 +302,17 @@ class JointfitNode(Node):
             self.router.last_problem = None
 
     def _on_markers(self, raw: bytes) -> None:
-        routed = self.router.markers(raw)
-        for r in routed:
-            self._publish_world(r)
-        segments, joint_states = self._subscribed()
-        if joint_states:
-            self._publish_joint_states(routed)
-        if segments and self.router.routed_stamp_ns is not None:
-            self._publish_segments(self.router.routed_stamp_ns)
+        routed = self.router.markers(raw)  # (defer_bookkeeping: the outputs first, then after_outputs)
+        try:
+            for r in routed:
+                self._publish_world(r)
+            segments, joint_states = self._subscribed()
+            if joint_states:
+                self._publish_joint_states(routed)
+            if segments and self.router.routed_stamp_ns is not None:
+                self._publish_segments(self.router.routed_stamp_ns)
+        finally:
+            self.router.after_outputs()  # stamp gaps, live-geometry samples: after the frame's outputs are out
         self._report_problem()
 
     def _publish_segments(self, stamp_ns: int) -> None:
@@ -386,21 +391,29 @@ class JointfitNode(Node):
         solver = self._solver
         if solver is not None:
             answers = solver.collect()
-            for name, result in answers:
+            for name, result in answers:  # each joint's answer on its own: a stale one is dropped there
                 self.runners[name].install(result, self._requests.pop(name, None))
-            if not solver.alive:
-                self.get_logger().warning(f"{solver.problem}: solving on the executor thread from now on")
-                self._solver = solver = None  # (the ticks stay twice as frequent: each joint is solved more often)
-            elif answers or not solver.idle:
-                return  # this tick installed an answer (or the worker is still solving): send on the next
+            if solver.alive:
+                if not answers and solver.idle:
+                    self._submit_due(solver)
+                return  # a tick installs the answers (or waits for them) or sends, never both
+            self.get_logger().warning(f"{solver.problem}: solving on the executor thread from now on")
+            self._solver = None
+            self._requests.clear()
+            self._make_timers()  # one joint per tick from now on
         self._estimate_turn = (self._estimate_turn + 1) % len(runners)
-        runner = runners[self._estimate_turn]
-        if solver is None:
-            runner.estimate(time.monotonic(), force=True)
-        else:
-            request = runner.solve_request(time.monotonic(), force=True)
-            if request is not None and solver.submit(runner.cfg.name, request):
-                self._requests[runner.cfg.name] = request  # an error answer is dropped if this becomes stale
+        runners[self._estimate_turn].estimate(time.monotonic(), force=True)
+
+    def _submit_due(self, solver: SolverProcess) -> None:
+        """Send every joint's due window to the worker in one request (a joint with nothing new has none)."""
+        now = time.monotonic()
+        batch: list[tuple[str, SolveRequest]] = []
+        for name, runner in self.runners.items():  # (per tick, not per frame)
+            request = runner.solve_request(now, force=True)
+            if request is not None:
+                batch.append((name, request))
+        if batch and solver.submit(batch):
+            self._requests = dict(batch)  # an error answer is dropped if its window is gone by then
 
     def _on_local_timer(self) -> None:
         stamp = self._now_ns()

@@ -255,6 +255,8 @@ class JointRunner:
         self._layout_seen: list[FloatArray] = []
         self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
+        #: The latest frame's live-geometry offer left for :meth:`take_sample` (``defer_sample``): (stamp s, frame).
+        self._sample: tuple[float, FloatArray] | None = None
         self._last_solve = -math.inf
         self._sign_fixed = not cfg.axis_toward_marker
         self.sign_text = ""  # which way the hinge axis points, in words (set when the sign is chosen)
@@ -466,14 +468,23 @@ class JointRunner:
     # ------------------------------------------------------------------ inputs
 
     def markers_frame(
-        self, stamp_ns: int, frame: FloatArray, chain: dict[str, FloatArray] | None = None
+        self,
+        stamp_ns: int,
+        frame: FloatArray,
+        chain: dict[str, FloatArray] | None = None,
+        *,
+        defer_sample: bool = False,
     ) -> JointOutput | None:
         """A frame of all configured markers (P, 3) from the marker topic.
 
         ``chain`` maps earlier joints' names to this frame's world output
         position (a virtual marker for ``parent_chain`` / ``child_chain``;
         missing when that joint has no output in this frame).
+        ``defer_sample``: the frame's live-geometry sample (bookkeeping that
+        does not change the output) is left for :meth:`take_sample`, so that
+        the caller publishes the output first.
         """
+        self._sample = None  # (a sample not taken before the next frame is dropped: its poses are gone)
         frame = self._in_workspace(frame)
         if self.chained:
             parent = self._with_chain(frame[self.parent_rows], self.cfg.parent_chain, chain or {})
@@ -482,12 +493,23 @@ class JointRunner:
         if self.matcher is None:
             out = self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
             if self.live_geometry is not None:
-                est = self.estimator
-                self.live_geometry.offer_one(stamp_ns * 1e-9, frame, est.templates, est.frame_poses)
+                self._sample = (stamp_ns * 1e-9, frame)
+                if not defer_sample:
+                    self.take_sample()
             return out
         if self.cfg.parent_markers:
             return self._paired(0, stamp_ns, frame[self.parent_rows], frame)
         return self._paired(1, stamp_ns, frame[self.child_rows], frame)
+
+    def take_sample(self) -> None:
+        """Offer the latest :meth:`markers_frame` frame to the live geometry, when it was deferred (else nothing).
+
+        Uses the estimator's poses of that frame, so it must come before the next frame.
+        """
+        pending, self._sample = self._sample, None
+        if pending is not None and self.live_geometry is not None:
+            est = self.estimator
+            self.live_geometry.offer_one(pending[0], pending[1], est.templates, est.frame_poses)
 
     def markers_block(self, stamps_ns: NDArray[np.int64], frames: FloatArray) -> None:
         """Frames of all configured markers (K, P, 3) from the marker topic, oldest first, without outputs.
@@ -514,6 +536,7 @@ class JointRunner:
         """
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
         n = stamps_ns.shape[0]
+        self._sample = None
         frames = self._in_workspace(frames)
         if self.matcher is not None:
             for k in range(n):
@@ -776,6 +799,7 @@ class JointRunner:
     def reset(self) -> None:
         """Forget the window, templates and estimate (the calibration file is untouched)."""
         self.estimator = self._new_estimator()
+        self._sample = None
         self._sign_fixed = not self.cfg.axis_toward_marker
         self.sign_text = self.sign_problem = ""
         self._layout_frames, self._layout_seen = False, []

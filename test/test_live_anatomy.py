@@ -150,3 +150,55 @@ def test_live_knee_fixture_agrees_with_the_offline_summary(tmp_path: Path) -> No
     assert live["axis to epicondyle line (deg)"] == pytest.approx(epi["angle_to_epicondyle_line_deg"], abs=1.0)
     assert live["epicondyle midpoint to axis (mm)"] == pytest.approx(epi["distance_to_epicondyle_midpoint"], abs=1.5)
     assert live["flexion range (deg)"] == pytest.approx(joint["range_of_motion"]["flexion_range_deg"], abs=5.0)
+
+
+def _same_output(a: object, b: object) -> bool:
+    """Whether two JointOutputs are equal field by field (arrays bit for bit)."""
+    for f in dataclasses.fields(a):  # type: ignore[arg-type]
+        u, v = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(u, np.ndarray):
+            if not (isinstance(v, np.ndarray) and np.array_equal(u, v, equal_nan=True)):
+                return False
+        elif u != v and not (u != u and v != v):  # (NaN equals NaN here)
+            return False
+    return True
+
+
+def test_the_bookkeeping_after_the_outputs_leaves_the_same_state() -> None:
+    """The node publishes a frame's outputs before its stamp-gap count and live-geometry samples
+    (``MessageRouter.defer_bookkeeping``, then ``after_outputs()``): the same outputs, samples and
+    counts as doing them inline, and nothing of it done before ``after_outputs``."""
+    from jointfit_ros.inputs import MessageRouter
+    from jointfit_ros.raw import pose_array_bytes
+
+    t, frames = _pelvis_stream(8.0)
+    frames[::37, 5] = 1e9  # absurd markers (treated as missing): the samples are of the cleaned frames
+    kept = np.ones(t.size, dtype=bool)
+    kept[400:403] = False  # three frames never arrive: gaps in the stamps
+    messages = [pose_array_bytes(10**9 + round(t[k] * 1e9), "world", frames[k]) for k in np.flatnonzero(kept)]
+    inline, deferred = _runner(), _runner()
+    routers = [MessageRouter(r.node, [r]) for r in (inline, deferred)]
+    routers[1].defer_bookkeeping = True
+    outputs = 0
+    for k, raw in enumerate(messages):
+        a = routers[0].markers(raw)
+        assert deferred.live_geometry is not None
+        count, received = deferred.live_geometry.count, routers[1].gaps.received
+        b = routers[1].markers(raw)
+        assert deferred.live_geometry.count == count and routers[1].gaps.received == received  # not yet
+        routers[1].after_outputs()
+        routers[1].after_outputs()  # a second call does nothing
+        assert len(a) == len(b) and all(_same_output(x.output, y.output) for x, y in zip(a, b, strict=True))
+        outputs += len(a)
+        if k % 50 == 49:
+            assert inline.estimate(force=True) == deferred.estimate(force=True)
+    assert outputs > 500
+    assert routers[1].gaps.received == routers[0].gaps.received == len(messages)
+    assert routers[1].gaps.missed == routers[0].gaps.missed == 3
+    geo_a, geo_b = inline.live_geometry, deferred.live_geometry
+    assert geo_a is not None and geo_b is not None and geo_a.count == geo_b.count >= MIN_SAMPLES
+    for name in ("_landmarks", "_child_in_parent", "_R_parent_child"):
+        np.testing.assert_array_equal(getattr(geo_a, name), getattr(geo_b, name), err_msg=name)
+    assert np.isfinite(geo_b._landmarks[: geo_b.count]).all()  # no absurd marker entered a sample
+    assert inline.counters == deferred.counters and inline.counters["absurd_markers"] > 0
+    assert inline.status().values == deferred.status().values

@@ -1,10 +1,12 @@
 """Solving a window elsewhere: OnlineJoint.solve_request / solve_window / install, and the node's solver process.
 
-The node sends each due window to a worker process (jointfit_ros.solver_process)
-so that solves do not delay the frames. The answer must equal the in-process
-estimate bit for bit, stale answers (a reset, freeze, new sign convention, or
-a newer estimate installed meanwhile) must be dropped, errors must arrive as
-the estimator's own exceptions, and a worker that dies must be noticed.
+The node sends every joint's due window to a worker process
+(jointfit_ros.solver_process) in one request, so that solves do not delay the
+frames. Each answer must equal the in-process estimate bit for bit, stale
+answers (a reset, freeze, new sign convention, or a newer estimate installed
+meanwhile) must be dropped joint by joint, errors must arrive as the
+estimator's own exceptions and as that joint's alone, and a worker that dies
+or hangs must be noticed.
 """
 
 from __future__ import annotations
@@ -20,20 +22,23 @@ from numpy.typing import NDArray
 from jointfit_core.errors import JointfitError, NotIdentifiableError
 from jointfit_core.estimator import OnlineJoint, SolveRequest, SolveResult, solve_window
 from jointfit_core.synthetic import two_segment_motion
-from jointfit_ros.solver_process import SolverProcess
+from jointfit_ros.solver_process import SolverProcess, solve_batch
 
 FloatArray = NDArray[np.float64]
 
 
-def _joint(kind: str, frames: int = 1500, seed: int = 5) -> tuple[OnlineJoint, FloatArray, FloatArray]:
+def _joint(
+    kind: str, frames: int = 1500, seed: int = 5, attachment: str = "rigid"
+) -> tuple[OnlineJoint, FloatArray, FloatArray]:
     """An estimator fed ``frames`` frames of a synthetic rig (0.5 mm noise), and the next 200 frames."""
     rng = np.random.default_rng(seed)
     m = two_segment_motion(rng, kind=kind)
-    p, c = m.markers_at(np.arange(frames + 200) / 100.0)
+    t = np.arange(frames + 200) / 100.0
+    p, c = m.markers_at(t)
     p = p + rng.normal(0.0, 0.5, p.shape)
     c = c + rng.normal(0.0, 0.5, c.shape)
-    est = OnlineJoint(kind, 1000)
-    est.update_many(p[:frames], c[:frames])
+    est = OnlineJoint(kind, 1000, attachment=attachment)
+    est.update_many(p[:frames], c[:frames], t[:frames] if attachment == "skin" else None)
     return est, p[frames:], c[frames:]
 
 
@@ -115,41 +120,175 @@ def _answer(sp: SolverProcess, timeout: float = 30.0) -> list[tuple[str, SolveRe
     raise AssertionError("no answer from the solver process")
 
 
-def test_solver_process_equals_in_process(solver: SolverProcess) -> None:
-    for kind in ("ball", "hinge"):
-        est, _, _ = _joint(kind, seed=7)
+def _requests(kinds: str, seed: int = 7) -> list[tuple[str, OnlineJoint, SolveRequest]]:
+    """``(key, estimator, request)`` of one joint per letter of ``kinds``, each its own rig.
+
+    b / h: a rigid ball / hinge; B / H: with skin attachment (the soft-tissue part, a second solution).
+    """
+    out = []
+    for k, letter in enumerate(kinds):
+        kind = {"b": "ball", "h": "hinge"}[letter.lower()]
+        attachment = "skin" if letter.isupper() else "rigid"
+        est, _, _ = _joint(kind, frames=1000 + 100 * k, seed=seed + k, attachment=attachment)
         request = est.solve_request()
         assert request is not None
-        assert solver.idle and solver.submit(kind, request)
-        assert not solver.idle and not solver.submit(kind, request)  # one at a time
-        ((key, answer),) = _answer(solver)
-        assert key == kind and isinstance(answer, SolveResult) and solver.idle
-        _assert_identical(answer.solution, solve_window(request).solution)
-        for v in _fields(answer.solution).values():
-            if isinstance(v, np.ndarray):
-                assert not v.flags.writeable  # as the estimator's own results
+        out.append((f"{kind}{k}", est, request))
+    return out
+
+
+def test_solver_process_equals_in_process(solver: SolverProcess) -> None:
+    joints = _requests("bhHBbh")
+    batch = [(key, request) for key, _, request in joints]
+    assert solver.idle and solver.submit(batch)
+    assert not solver.idle and not solver.submit(batch)  # one batch at a time
+    answers = _answer(solver)
+    assert [key for key, _ in answers] == [key for key, _ in batch]  # all of them, in one answer, in order
+    assert solver.idle and solver.collect() == []
+    for (key, answer), (_, est, request) in zip(answers, joints, strict=True):
+        assert isinstance(answer, SolveResult), key
+        local = solve_window(request)
+        _assert_identical(answer.solution, local.solution)
+        assert answer.noise_std == local.noise_std
+        assert (answer.statistical is None) == (local.statistical is None) == (request.attachment == ("rigid", "rigid"))
+        if answer.statistical is not None:  # skin: the statistical part too
+            _assert_identical(answer.statistical, local.statistical)
+            assert answer.artefact_scale == local.artefact_scale
+        for part in (answer.solution, answer.statistical or answer.solution):
+            for v in _fields(part).values():
+                if isinstance(v, np.ndarray):
+                    assert not v.flags.writeable  # as the estimator's own results
         assert est.install(answer)
+    # the next batch goes to the same worker
+    proc = solver._proc
+    est, _, _ = _joint("ball", seed=11)
+    request = est.solve_request()
+    assert request is not None and solver.submit([("again", request)])
+    ((key, answer),) = _answer(solver)
+    assert key == "again" and isinstance(answer, SolveResult) and solver._proc is proc
+    _assert_identical(answer.solution, solve_window(request).solution)
 
 
-def test_solver_process_returns_the_error(solver: SolverProcess) -> None:
+def _still_request() -> SolveRequest:
+    """A window without movement or noise: no joint to find (the solve raises NotIdentifiableError)."""
     _, p, c = _joint("ball", frames=0)
-    still_p = np.repeat(p[:1], 300, axis=0)  # no movement, no noise: no joint to find
-    still_c = np.repeat(c[:1], 300, axis=0)
     est = OnlineJoint("ball", 1000)
-    est.update_many(still_p, still_c)
+    est.update_many(np.repeat(p[:1], 300, axis=0), np.repeat(c[:1], 300, axis=0))
     request = est.solve_request()
     assert request is not None
+    return request
+
+
+def test_solver_process_returns_each_joints_error(solver: SolverProcess) -> None:
+    """A solve that raises is that joint's answer; the joints before and after it in the batch are solved."""
+    still = _still_request()
     with pytest.raises(NotIdentifiableError) as local:
-        solve_window(request)
-    solver.submit("hip", request)
-    ((key, answer),) = _answer(solver)
-    assert key == "hip" and type(answer) is NotIdentifiableError and str(answer) == str(local.value)
+        solve_window(still)
+    (_, _, ball), (_, _, hinge) = _requests("bh", seed=3)
+    broken = dataclasses.replace(ball, sums=ball.sums[:10])  # a bug's stand-in: not a JointfitError
+    with pytest.raises(Exception) as bug:
+        solve_window(broken)
+    assert not isinstance(bug.value, JointfitError)
+    batch = [("ball", ball), ("hip", still), ("bug", broken), ("hinge", hinge)]
+    assert solver.submit(batch)
+    answers = dict(_answer(solver))
+    assert list(answers) == ["ball", "hip", "bug", "hinge"]
+    assert type(answers["hip"]) is NotIdentifiableError and str(answers["hip"]) == str(local.value)
+    assert type(answers["bug"]) is JointfitError
+    assert str(answers["bug"]) == f"solver process: {type(bug.value).__name__}: {bug.value}"
+    for key, request in (("ball", ball), ("hinge", hinge)):
+        answer = answers[key]
+        assert isinstance(answer, SolveResult), key
+        _assert_identical(answer.solution, solve_window(request).solution)
     assert solver.alive and solver.idle
+
+
+def test_solve_batch_is_what_the_worker_answers() -> None:
+    """The worker's function in this process: the same answers, errors in their joint's place."""
+    (_, _, ball), (_, _, hinge) = _requests("bh", seed=3)
+    answers = solve_batch([("hinge", hinge), ("hip", _still_request()), ("ball", ball)])
+    assert [key for key, _ in answers] == ["hinge", "hip", "ball"]
+    assert isinstance(answers[1][1], NotIdentifiableError)
+    for (_, answer), request in ((answers[0], hinge), (answers[2], ball)):
+        assert isinstance(answer, SolveResult)
+        _assert_identical(answer.solution, solve_window(request).solution)
+    assert solve_batch([]) == []
+
+
+def test_a_batch_takes_one_request_per_key() -> None:
+    sp = SolverProcess()
+    (_, _, request), = _requests("b")
+    for batch in ([], [("hip", request), ("hip", request)]):
+        with pytest.raises(ValueError, match="one request per key"):
+            sp.submit(batch)
+    assert not sp.started and sp.idle  # refused before anything was started or sent
+    sp.close()
+
+
+def test_stale_answers_of_a_batch_are_dropped_per_joint(solver: SolverProcess) -> None:
+    """Runners of one batch: each answer is installed or dropped by its own joint's state at arrival."""
+    from jointfit_ros.params import node_config
+    from jointfit_ros.runner import JointRunner
+
+    names = [f"{s}{i}" for s in ("P", "C", "Q", "D", "R", "E") for i in range(4)]
+    values = {
+        "joints": ["hip", "knee", "ankle"],
+        "units": "mm",
+        "marker_names": names,
+        "hip.parent_markers": names[0:4], "hip.child_markers": names[4:8],
+        "knee.type": "hinge", "knee.parent_markers": names[8:12], "knee.child_markers": names[12:16],
+        "ankle.parent_markers": names[16:20], "ankle.child_markers": names[20:24],
+    }  # fmt: skip
+    for joint in values["joints"]:
+        values[f"{joint}.window"] = 800
+        values[f"{joint}.template_frames"] = 20
+    cfg = node_config(values)
+    rng = np.random.default_rng(2)
+    parts = []
+    for kind in ("ball", "hinge", "ball"):
+        yp, yc = two_segment_motion(rng, kind=kind).markers_at(np.arange(700) / 100.0)
+        parts += [yp, yc]
+    frames = np.concatenate(parts, axis=1) + rng.normal(0.0, 0.5, (700, 24, 3))
+    frames[:, 16:24] = frames[0, 16:24]  # the ankle never moves (and is noiseless): its solve raises
+    runners = {j.name: JointRunner(j, cfg) for j in cfg.joints}
+    for k in range(600):
+        for runner in runners.values():
+            runner.markers_frame(10**9 + k * 10**7, frames[k])
+    requests = {name: runner.solve_request(force=True) for name, runner in runners.items()}
+    assert all(r is not None for r in requests.values())
+    assert solver.submit([(name, r) for name, r in requests.items() if r is not None])
+    # meanwhile: the hip is reset and fed again, the knee takes new frames, the ankle is left alone
+    runners["hip"].reset()
+    for k in range(600, 700):
+        for name in ("hip", "knee"):
+            runners[name].markers_frame(10**9 + k * 10**7, frames[k])
+    answers = dict(_answer(solver))
+    assert isinstance(answers["hip"], SolveResult) and isinstance(answers["knee"], SolveResult)
+    assert isinstance(answers["ankle"], NotIdentifiableError)
+    installed = {name: runners[name].install(answers[name], requests[name]) for name in runners}
+    assert installed == {"hip": False, "knee": True, "ankle": False}
+    assert runners["hip"].estimator.solution is None  # the reset joint kept nothing of the old window
+    assert runners["hip"].counters["estimate_failures"] == 0
+    assert runners["knee"].estimator.solution is answers["knee"].solution  # older than its frames, still the newest
+    assert runners["ankle"].counters["estimate_failures"] == 1 and "no estimate" in runners["ankle"].last_error
+    # a second round: the ankle is reset meanwhile, so its error is about a window that is gone: dropped uncounted
+    requests = {name: runner.solve_request(force=True) for name, runner in runners.items()}
+    assert requests["hip"] is not None and requests["ankle"] is not None
+    assert solver.submit([(name, r) for name, r in requests.items() if r is not None])
+    runners["ankle"].reset()
+    answers = dict(_answer(solver))
+    assert runners["hip"].install(answers["hip"], requests["hip"])
+    assert not runners["ankle"].install(answers["ankle"], requests["ankle"])
+    assert runners["ankle"].counters["estimate_failures"] == 0
+    reference = JointRunner(cfg.joints[0], cfg)
+    for k in range(600, 700):
+        reference.markers_frame(10**9 + k * 10**7, frames[k])
+    assert reference.estimate(force=True)
+    _assert_identical(runners["hip"].estimator.solution, reference.estimator.solution)
 
 
 def _running(sp: SolverProcess, request: SolveRequest) -> subprocess.Popen[bytes]:
     """Start the worker (it starts with the first request) and wait for its answer."""
-    assert sp.submit("first", request)
+    assert sp.submit([("first", request)])
     assert len(_answer(sp)) == 1
     assert sp._proc is not None and sp._proc.poll() is None
     return sp._proc
@@ -172,28 +311,41 @@ def test_the_worker_starts_with_the_first_request() -> None:
     assert proc.poll() is not None and not sp.alive
 
 
-def test_a_dead_worker_is_noticed(solver: SolverProcess) -> None:
-    est, _, _ = _joint("ball")
-    request = est.solve_request()
-    assert request is not None
-    _running(solver, request)
+@pytest.mark.parametrize("when", ["idle", "next batch", "solving"])
+def test_a_dead_worker_is_noticed(solver: SolverProcess, when: str) -> None:
+    """Killed while idle (seen by collect alone), before the next batch, or while it solves one."""
+    joints = _requests("bh")
+    batch = [(key, request) for key, _, request in joints]
+    _running(solver, batch[0][1])
     assert solver._proc is not None
+    if when == "solving":
+        assert solver.submit(batch)
     solver._proc.kill()
     solver._proc.wait()
-    solver.submit("hip", request)  # may still succeed: the socket's buffer takes it
+    if when == "next batch":
+        solver.submit(batch)  # may still succeed: the socket's buffer takes it
     assert _answer(solver) == []
     assert not solver.alive and not solver.idle and "solver process" in solver.problem
-    assert not solver.submit("hip", request)
+    if when != "next batch":
+        assert "solver process ended" in solver.problem
+    assert not solver.submit(batch)
 
 
 # --------------------------------------------------------------------------- in the node
 
 
-def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> tuple[dict[str, object], list[str]]:
-    """An in-process node fed 1500 frames of the fake rigs, its estimate timer ticked every 20 frames.
+@dataclasses.dataclass
+class _NodeRun:
+    """What :func:`_node_estimates` saw: final solutions, and per estimate tick where it solved and its period."""
 
-    Returns the joints' final solutions and the node's diagnostics value "estimates solved in" over time.
-    """
+    solutions: dict[str, object]
+    solved_in: list[str]  # "worker" or "thread", per tick
+    periods_ns: list[int]  # the estimate timer's period after each tick
+    batches: list[list[str]]  # the joints of each batch sent to the worker
+
+
+def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> _NodeRun:
+    """An in-process node fed 1500 frames of the fake rigs, its estimate timer ticked every 20 frames."""
     rclpy = pytest.importorskip("rclpy")
     import os
     import tempfile
@@ -209,11 +361,12 @@ def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> 
         params.write_text(
             f"""jointfit:
   ros__parameters:
-    joints: [hip, knee]
+    joints: [hip, knee, pelvis]
     marker_names: [{", ".join(marker_names(0))}]
     solver_process: {str(solver_process).lower()}
     hip: {{type: ball, parent_markers: [PELV1, PELV2, PELV3, PELV4], child_markers: [THIGH1, THIGH2, THIGH3, THIGH4], window: 5000}}
     knee: {{type: hinge, parent_markers: [FEMUR1, FEMUR2, FEMUR3, FEMUR4], child_markers: [SHANK1, SHANK2, SHANK3, SHANK4], window: 5000, axis_toward_marker: SHANK1}}
+    pelvis: {{type: ball, parent_markers: [THIGH1, THIGH2, THIGH3, THIGH4], child_markers: [PELV1, PELV2, PELV3, PELV4], window: 5000}}
 """,
             encoding="utf-8",
         )
@@ -223,7 +376,17 @@ def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> 
         try:
             rigs = make_rigs(3)
             rng = np.random.default_rng(3)
-            solved_in: list[str] = []
+            run = _NodeRun({}, [], [], [])
+            if node._solver is not None:
+                submit = node._solver.submit
+
+                def recording(batch: list[tuple[str, SolveRequest]]) -> bool:
+                    sent = submit(batch)
+                    if sent:
+                        run.batches.append([key for key, _ in batch])
+                    return sent
+
+                node._solver.submit = recording  # type: ignore[method-assign]
             for k in range(1500):
                 frame = frame_at(rigs, k / 100.0, rng, 0.5, 0.0) / 1000.0
                 node._on_markers(pose_array_bytes(10**18 + k * 10**7, "world", frame))
@@ -235,13 +398,15 @@ def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> 
                     if node._solver is not None:
                         node._solver.ready(30.0)  # the worker's answer (its start takes a second or two)
                     node._on_estimate_timer()
-                    solved_in.append("worker" if node._solver is not None else "thread")
+                    run.solved_in.append("worker" if node._solver is not None else "thread")
+                    run.periods_ns.append(node._jf_timers["estimate"].timer_period_ns)
             # bring every joint up to the last frame
             for _ in range(8):
                 if node._solver is not None:
                     node._solver.ready(30.0)
                 node._on_estimate_timer()
-            return {name: r.estimator.solution for name, r in node.runners.items()}, solved_in
+            run.solutions = {name: r.estimator.solution for name, r in node.runners.items()}
+            return run
         finally:
             node.destroy_node()
             rclpy.shutdown(context=context)
@@ -249,23 +414,32 @@ def _node_estimates(solver_process: bool, kill_worker_at: int | None = None) -> 
 
 @pytest.mark.ros
 def test_node_solves_in_the_worker_as_in_process() -> None:
-    in_worker, where = _node_estimates(True)
-    assert set(where) == {"worker"}
-    in_thread, where = _node_estimates(False)
-    assert set(where) == {"thread"}
-    for name in ("hip", "knee"):
-        assert in_worker[name] is not None
-        _assert_identical(in_worker[name], in_thread[name])
+    in_worker = _node_estimates(True)
+    assert set(in_worker.solved_in) == {"worker"}
+    # every joint in every batch, one batch every other tick (a tick sends, the next installs)
+    assert in_worker.batches and all(keys == ["hip", "knee", "pelvis"] for keys in in_worker.batches)
+    assert len(in_worker.batches) >= (1500 // 20) // 2
+    assert set(in_worker.periods_ns) == {round(0.1 / 2 * 1e9)}  # estimate_period / 2, whatever the joint count
+    in_thread = _node_estimates(False)
+    assert set(in_thread.solved_in) == {"thread"}
+    assert set(in_thread.periods_ns) == {round(0.1 / 3 * 1e9)}  # estimate_period / joints: one joint per tick
+    for name in ("hip", "knee", "pelvis"):
+        assert in_worker.solutions[name] is not None
+        _assert_identical(in_worker.solutions[name], in_thread.solutions[name])
 
 
 @pytest.mark.ros
 def test_node_falls_back_when_the_worker_dies() -> None:
-    solutions, where = _node_estimates(True, kill_worker_at=700)
+    run = _node_estimates(True, kill_worker_at=700)
+    where = run.solved_in
     assert where[0] == "worker" and where[-1] == "thread"
     assert where.index("thread") <= 700 // 20 + 2  # noticed at the next tick or the one after
-    reference, _ = _node_estimates(False)
-    for name in ("hip", "knee"):
-        _assert_identical(solutions[name], reference[name])
+    switched = where.index("thread")
+    assert set(run.periods_ns[:switched]) == {round(0.1 / 2 * 1e9)}
+    assert set(run.periods_ns[switched:]) == {round(0.1 / 3 * 1e9)}  # re-armed: one joint per tick, in turn
+    reference = _node_estimates(False)
+    for name in ("hip", "knee", "pelvis"):
+        _assert_identical(run.solutions[name], reference.solutions[name])
 
 
 def test_a_hung_worker_is_given_up(solver: SolverProcess, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -279,7 +453,9 @@ def test_a_hung_worker_is_given_up(solver: SolverProcess, monkeypatch: pytest.Mo
     worker = _running(solver, request)
     monkeypatch.setattr(sp_module, "SOLVE_TIMEOUT_S", 0.2)
     worker.send_signal(signal.SIGSTOP)  # alive, never answering
-    assert solver.submit("hip", request)
+    assert solver.submit([("hip", request), ("knee", _requests("h")[0][2])])
+    assert solver.collect() == []  # not yet timed out: waiting
+    assert solver.alive and not solver.idle
     time.sleep(0.3)
     assert solver.collect() == []
     assert not solver.alive and "no answer" in solver.problem
