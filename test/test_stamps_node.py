@@ -188,6 +188,22 @@ def test_bad_stamps_do_not_stop_the_stream_nor_the_node(rig: tuple[_Client, Any,
     assert proc.poll() is None, "the node died"
 
 
+def _input_ok_but_for_lost_frames(client: _Client) -> bool:
+    """The input status is OK, or WARN only because best-effort frames were lost on the way.
+
+    On a loaded machine DDS drops some of this test's own best-effort frames before the node sees
+    them, and the node then rightly warns "N of the last M frames never arrived" (that warning has
+    its own tests: ``test/test_stamp_gaps.py`` and the withheld-frames test below). Any other
+    warning (a stamp problem, dropped messages) still fails.
+    """
+    st = client.status("input")
+    if _level(client, "input") == OK:
+        return True
+    message = st.get("message", "")
+    others = ("bad stamps dropped", "were dropped", "no messages")
+    return _level(client, "input") == WARN and "never arrived" in message and not any(o in message for o in others)
+
+
 def test_a_replay_looping_to_its_start_is_followed(rig: tuple[_Client, Any, Any]) -> None:
     client, rigs, proc = rig
     t = _warm_up(client, rigs)
@@ -197,7 +213,8 @@ def test_a_replay_looping_to_its_start_is_followed(rig: tuple[_Client, Any, Any]
     )
     _stream(client, rigs, 0.0, 1.5)  # the bag again from its start: the same stamps
     assert client.spin_until(lambda: _count(client, "input", "timeline restarts") == 1, 5.0), client.status("input")
-    assert _level(client, "hip") == OK and _level(client, "knee") == OK and _level(client, "input") == OK, client.status("input")
+    assert _level(client, "hip") == OK and _level(client, "knee") == OK, (client.status("hip"), client.status("knee"))
+    assert _input_ok_but_for_lost_frames(client), client.status("input")
     client.spin_until(lambda: False, 0.3)  # the last outputs in
     replay_hip, replay_knee = _second_pass(client.hip), _second_pass(client.knee)
     # recognised within a few frames: the frozen hip publishes from then on, with the replay's own stamps

@@ -206,7 +206,12 @@ def test_two_subjects_in_two_namespaces(listener: _Listener, tmp_path: Path) -> 
         a = [ln for ln in lines if ln.startswith("/subject_a/jointfit ")]
         b = [ln for ln in lines if ln.startswith("/subject_b/jointfit ")]
         assert len(a) == 3 and len(b) == 3 and len(lines) == 6, out  # input, hip, knee each
-        assert a[0].startswith("/subject_a/jointfit input OK") and b[0].startswith("/subject_b/jointfit input OK")
+        # input OK; or WARN only for best-effort frames lost on the way on a loaded machine (two streams and two
+        # nodes here), which the node rightly reports ("... frames never arrived"; tested in test_stamp_gaps.py)
+        for ln, ns in ((a[0], "subject_a"), (b[0], "subject_b")):
+            assert ln.startswith(f"/{ns}/jointfit input OK") or (
+                ln.startswith(f"/{ns}/jointfit input WARN") and "never arrived" in ln and "bad stamps" not in ln
+            ), out
         assert all("| frozen |" in ln for ln in a[1:]) and not any("frozen" in ln for ln in b[1:]), out
         assert any(ln.startswith("/subject_b/jointfit hip OK | centre (") for ln in b), out
         code, out, err = _cli(listener, "status", "--once", "--all", "--timeout", "20")
