@@ -22,8 +22,12 @@ Measures, per joint: the error against the truth in the joint's parent template 
 covariance is honest; > 3 in one trial happens with probability 0.03 for a Gaussian k = 3 and
 0.05 for k = 2): the ball centre (k = 3), the hinge direction (k = 2) and the hinge point's
 off-axis part in the plane normal to the estimated axis (k = 2, as bench/sta.py).
-``--drivers proximal`` moves each segment's skin with its proximal joint only (the pelvis's with
-both hips), to separate the artefact a joint's own angles explain from the other joint's.
+``--drivers proximal`` moves each segment's skin with its proximal joint only, ``--drivers distal``
+with its distal joint(s) only (the pelvis's with both hips, the foot's with the ankle, either way),
+to separate the artefact a joint's own angles explain from the other joint's: with ``distal`` the
+hip's thigh cluster follows the knee (not the hip), the knee's thigh cluster its own knee and its
+shank the ankle; with ``proximal`` the hip's thigh follows the hip, the knee's thigh the hip and
+its shank the knee.
 """
 
 from __future__ import annotations
@@ -57,9 +61,20 @@ ATTACHMENTS = ("skin", "rigid")
 
 
 def _drivers(sk: Skeleton, which: str) -> dict[str, tuple[str, ...]] | None:
+    """Which joints move each segment's skin: all adjacent (None), the proximal one, or the distal ones.
+
+    A segment without a joint on that side (the pelvis, the foot) keeps its adjacent joints.
+    """
     if which == "adjacent":
         return None
-    return {s.name: (s.joint,) if s.parent is not None else adjacent_joints(sk)[s.name] for s in sk.segments}
+    out = {}
+    for s in sk.segments:
+        adjacent = adjacent_joints(sk)[s.name]
+        if s.parent is None or len(adjacent) == 1:
+            out[s.name] = adjacent
+        else:
+            out[s.name] = adjacent[:1] if which == "proximal" else adjacent[1:]
+    return out
 
 
 def trial(rng: np.random.Generator, rate: float, drivers: str, occlusion: float) -> dict[str, list[JointScore]]:
@@ -159,7 +174,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="4 trials per rate instead of 16")
     parser.add_argument("--trials", type=int, default=None, help="trials per rate (overrides --quick)")
-    parser.add_argument("--drivers", choices=("adjacent", "proximal"), default="adjacent",
+    parser.add_argument("--drivers", choices=("adjacent", "proximal", "distal"), default="adjacent",
                         help="which joints' angles move each segment's skin (default: all adjacent joints)")
     parser.add_argument("--occlusion", type=float, default=OCCLUSION,
                         help=f"share of the markers missing in a frame (default {OCCLUSION})")
