@@ -24,7 +24,8 @@ Leardini et al. (2005). For one joint and one segment this is exactly the two-se
 
 For a joint estimator this is harder than the two-segment rigs: part of each segment's
 artefact follows the *other* adjacent joint (the hip's thigh cluster moves with the knee), which
-the estimator's prior, a function of its own joint's angles, does not model.
+the estimator's prior, a function of its own joint's angles, does not model
+(``bench/skeleton_sta.py`` measures what the node's covariances make of it).
 """
 
 from __future__ import annotations
