@@ -325,6 +325,42 @@ class Skeleton:
             out[j] = JointTruth(j, s.kind, parent.name, s.name, point, direction)
         return out
 
+    def joint_in_template(self, joint: str, template: ArrayLike, t_ref: float = 0.0) -> tuple[FloatArray, FloatArray | None]:
+        """The true joint in a frame defined by an estimated template of its parent's markers.
+
+        The true template frame (:meth:`joints_local` at ``t_ref``) is mapped onto ``template``
+        by the rigid fit (Kabsch) of the parent's true cluster to it, so the truth lands in
+        the node's own parent frame whatever noise or skin motion its template holds.
+
+        Parameters
+        ----------
+        joint : str
+            An estimated joint.
+        template : array_like, shape (P, 3)
+            The node's template of the parent's markers (m), in :attr:`SegmentSpec.markers` order.
+        t_ref : float
+            Motion time (s) of the template's frame.
+
+        Returns
+        -------
+        point : ndarray, shape (3,)
+            Ball: the centre; hinge: the axis point nearest the template frame's origin (m).
+        direction : ndarray, shape (3,) or None
+            Unit hinge direction (sign arbitrary); None for a ball.
+        """
+        truth = self.joints_local(t_ref)[joint]
+        parent = self.segment(truth.parent)
+        R0 = self.poses_at([t_ref])[0][0, [s.name for s in self.segments].index(parent.name)]
+        true_template = (parent.markers - parent.markers.mean(axis=0)) @ R0.T
+        x = np.asarray(template, dtype=np.float64)
+        U, _, Vt = np.linalg.svd(true_template.T @ x)
+        Q = Vt.T @ np.diag([1.0, 1.0, np.linalg.det(Vt.T @ U.T)]) @ U.T
+        point: FloatArray = Q @ truth.point + x.mean(axis=0) - Q @ true_template.mean(axis=0)
+        if truth.direction is None:
+            return point, None
+        direction: FloatArray = Q @ truth.direction
+        return point - direction * (point @ direction), direction
+
 
 def make_skeleton(name: str = "lower", *, cycle_s: float = 10.0, seed: int = 0) -> Skeleton:
     """The ``lower`` or ``full`` skeleton (see the module docstring).

@@ -45,10 +45,14 @@ _N_FEATURES = 9
 
 
 def _features(q: FloatArray) -> FloatArray:
-    """Linear and quadratic terms of the joint angles, (N, 3) rad -> (N, 9)."""
-    return np.concatenate(
-        [q, q**2, q[:, [0]] * q[:, [1]], q[:, [0]] * q[:, [2]], q[:, [1]] * q[:, [2]]], axis=1
-    )
+    """Linear and quadratic terms of the joint angles, (N, m) rad -> (N, m + m (m + 1) / 2).
+
+    Order: ``q``, ``q**2``, then the products ``q_i q_j`` (i < j) row by row; for m = 3
+    the 9 features of the module docstring.
+    """
+    m = q.shape[1]
+    i, j = np.triu_indices(m, k=1)
+    return np.concatenate([q, q**2, q[:, i] * q[:, j]], axis=1)
 
 
 def _skew_rows(x: FloatArray) -> FloatArray:
@@ -68,7 +72,7 @@ class SkinArtefact:
 
     Attributes
     ----------
-    rigid, deformation : ndarray, shape (9, P, 3)
+    rigid, deformation : ndarray, shape (F, P, 3)
         Displacement of each marker per unit of each feature, the rigid
         part (a small rotation about the cluster centroid plus a shift) and
         the deformation part (orthogonal to every rigid field).
@@ -94,9 +98,9 @@ def skin_artefact(
     rng : numpy.random.Generator
     template : array_like, shape (P, 3)
         The cluster in its bone frame (mm).
-    features : array_like, shape (N, 9)
+    features : array_like, shape (N, F)
         The features the trial will feed it (:func:`_features` of the joint
-        angles, or the wobble signals): the scaling makes the rms
+        angles, F = 9 for one joint, or the wobble signals): the scaling makes the rms
         displacement over these frames and the markers ``amplitude``.
     amplitude : float
         Rms displacement magnitude over frames and markers (mm).
@@ -112,16 +116,16 @@ def skin_artefact(
     x = np.asarray(template, dtype=np.float64)
     x = x - x.mean(axis=0)
     f = np.asarray(features, dtype=np.float64)
-    p = x.shape[0]
+    p, n_f = x.shape[0], f.shape[1]
     G = _skew_rows(x)
     # rigid: random (omega, tau) per feature, omega in rad per unit feature scaled like tau / radius
     radius = float(np.sqrt((x**2).sum(axis=1).mean()))
-    coef = rng.normal(size=(_N_FEATURES, 6))
+    coef = rng.normal(size=(n_f, 6))
     coef[:, :3] /= radius
-    rigid = (coef @ G.T).reshape(_N_FEATURES, p, 3)
-    raw = rng.normal(size=(_N_FEATURES, 3 * p))
+    rigid = (coef @ G.T).reshape(n_f, p, 3)
+    raw = rng.normal(size=(n_f, 3 * p))
     proj = G @ np.linalg.pinv(G)
-    deformation = (raw - raw @ proj.T).reshape(_N_FEATURES, p, 3)
+    deformation = (raw - raw @ proj.T).reshape(n_f, p, 3)
 
     def rms(field: FloatArray) -> float:
         d = np.einsum("nf,fpi->npi", f, field)
@@ -134,9 +138,10 @@ def skin_artefact(
     return SkinArtefact(rigid=rigid, deformation=deformation)
 
 
-def _wobble(rng: np.random.Generator, t: FloatArray) -> FloatArray:
-    freq = rng.uniform(0.3, 2.0, _N_FEATURES)
-    phase = rng.uniform(0.0, 2.0 * np.pi, _N_FEATURES)
+def _wobble(rng: np.random.Generator, t: FloatArray, n: int = _N_FEATURES) -> FloatArray:
+    """``n`` smooth random signals (0.3-2 Hz sines, random phases) at ``t`` (s), shape (N, n)."""
+    freq = rng.uniform(0.3, 2.0, n)
+    phase = rng.uniform(0.0, 2.0 * np.pi, n)
     out: FloatArray = np.sin(2.0 * np.pi * freq * t[:, None] + phase)
     return out
 

@@ -11,7 +11,8 @@ import re
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_skeleton_configs import FILES, RATE, T0
+from skeleton_runs import T0
+from test_skeleton_configs import FILES, RATE
 
 from jointfit_core.errors import InputError
 from jointfit_core.joint_angles import (

@@ -4,7 +4,8 @@ The node's per-message path (MessageRouter -> JointRunner -> OnlineJoint, no ROS
 runs over 10 s of the skeleton stream at 100 Hz (0.5 mm white noise, 2 % occluded
 markers), in blocks as ``jointfit fit`` does. Each estimate is compared with the
 truth in the node's own parent template frame (the true template frame mapped onto
-the node's estimated template by the rigid fit of their markers): the error against
+the node's estimated template by the rigid fit of their markers,
+``Skeleton.joint_in_template``; the run is ``skeleton_runs.run_stream``): the error against
 the reported covariance, e = err^T W^+ err / rank, over every ball centre, hinge
 direction and hinge point.
 """
@@ -16,18 +17,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import mahalanobis
+from skeleton_runs import run_stream
 
-from jointfit_core.skeleton_truth import Skeleton, make_skeleton, skeleton_frames
-from jointfit_ros.inputs import MessageRouter
+from jointfit_core.skeleton_truth import make_skeleton, skeleton_frames
 from jointfit_ros.params import node_config, params_from_file
-from jointfit_ros.raw import pose_array_bytes
-from jointfit_ros.runner import JointRunner
 from jointfit_ros.skeleton_params import skeleton_parameters
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 FILES = {"lower": CONFIG / "lower_body.yaml", "full": CONFIG / "full_body.yaml"}
 RATE = 100.0
-T0 = 1_000_000_000_000
 
 
 @pytest.mark.parametrize("name", ["lower", "full"])
@@ -66,36 +64,13 @@ def test_skeleton_parameters_subsets_and_errors() -> None:
         skeleton_parameters(sk, ["neck"])
 
 
-def _node_frame_truth(sk: Skeleton, joint: str, template: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """The true joint (point, direction) in the node's parent template frame (its template at t = 0)."""
-    truth = sk.joints_local(0.0)[joint]
-    parent = sk.segment(truth.parent)
-    index = [s.name for s in sk.segments].index(parent.name)
-    R0 = sk.poses_at([0.0])[0][0, index]
-    true_template = (parent.markers - parent.markers.mean(axis=0)) @ R0.T
-    H = true_template.T @ template
-    U, _, Vt = np.linalg.svd(H)
-    Q = Vt.T @ np.diag([1.0, 1.0, np.linalg.det(Vt.T @ U.T)]) @ U.T
-    shift = template.mean(axis=0) - Q @ true_template.mean(axis=0)
-    point = Q @ truth.point + shift
-    if truth.direction is None:
-        return point, None
-    direction = Q @ truth.direction
-    return point - direction * (point @ direction), direction  # the axis point nearest the node's origin
-
-
 @pytest.mark.parametrize("name", ["lower", "full"])
 def test_the_configs_identify_every_joint_within_its_uncertainty(name: str) -> None:
     sk = make_skeleton(name, seed=1)
     cfg = node_config(params_from_file(FILES[name]))
     t = np.arange(int(10.0 * RATE)) / RATE
     frames = skeleton_frames(sk, t, np.random.default_rng(1), 0.0005, 0.02)
-    raws = [pose_array_bytes(T0 + round(tk * 1e9), "world", f) for tk, f in zip(t, frames, strict=True)]
-    runners = [JointRunner(j, cfg) for j in cfg.joints]
-    router = MessageRouter(cfg, runners)
-    for start in range(0, len(raws), 100):
-        router.markers_many(raws[start : start + 100])
-    assert router.counters["malformed"] == 0
+    runners = run_stream(cfg, t, frames)
     indices = []
     for r in runners:
         assert r.estimate(force=True), r.last_error
@@ -103,7 +78,7 @@ def test_the_configs_identify_every_joint_within_its_uncertainty(name: str) -> N
         assert sol is not None and sol.identifiable, (r.cfg.name, sol)
         template = r.estimator.templates[0]
         assert template is not None
-        point, direction = _node_frame_truth(sk, r.cfg.name, template)
+        point, direction = sk.joint_in_template(r.cfg.name, template)
         if direction is None:
             err = sol.centre_parent - point
             assert np.linalg.norm(err) < 1e-3, r.cfg.name  # within 1 mm (sd ~0.1 mm)

@@ -1,0 +1,110 @@
+"""The node's per-message path over a skeleton stream, and each joint's error against its covariance.
+
+Shared by ``test/test_skeleton_configs.py``, ``test/test_skeleton_sta.py`` and
+``bench/skeleton_sta.py``: frames are encoded as PoseArray CDR bytes and fed to
+:class:`~jointfit_ros.inputs.MessageRouter` -> :class:`~jointfit_ros.runner.JointRunner` ->
+``OnlineJoint`` (no ROS) in blocks of 100, as ``jointfit fit`` does; the truth is mapped into
+each joint's own parent template frame (:meth:`Skeleton.joint_in_template`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jointfit_core.skeleton_truth import Skeleton
+from jointfit_ros.inputs import MessageRouter
+from jointfit_ros.params import NodeConfig
+from jointfit_ros.raw import pose_array_bytes
+from jointfit_ros.runner import JointRunner
+
+#: Stamp of motion time 0 (ns).
+T0 = 1_000_000_000_000
+
+
+def run_stream(cfg: NodeConfig, times: NDArray[np.float64], frames: NDArray[np.float64], block: int = 100) -> list[JointRunner]:
+    """Feed ``frames`` (N, P, 3) (m) stamped at ``times`` (s) through the node's router; the runners, not yet solved."""
+    raws = [pose_array_bytes(T0 + round(tk * 1e9), "world", f) for tk, f in zip(times, frames, strict=True)]
+    runners = [JointRunner(j, cfg) for j in cfg.joints]
+    router = MessageRouter(cfg, runners)
+    for start in range(0, len(raws), block):
+        router.markers_many(raws[start : start + block])
+    assert router.counters["malformed"] == 0
+    return runners
+
+
+def _index(err: NDArray[np.float64], cov: NDArray[np.float64]) -> float:
+    """``err^T cov^+ err / rank`` (as helpers.mahalanobis)."""
+    pinv = np.linalg.pinv(cov, rcond=1e-10, hermitian=True)
+    rank = int(np.linalg.matrix_rank(cov, tol=1e-10 * np.abs(np.linalg.eigvalsh(cov)).max(), hermitian=True))
+    return float(err @ pinv @ err) / rank
+
+
+@dataclass(frozen=True)
+class JointScore:
+    """One joint's estimate against the truth.
+
+    Attributes
+    ----------
+    name, kind : str
+    error : float
+        Ball: centre error (mm); hinge: direction error (deg).
+    sd : float
+        Ball: sqrt(tr cov) of the centre (mm); hinge: of the direction (deg).
+    e : float
+        ``err^T cov^+ err / rank``: the centre's (ball) or the direction's (hinge).
+    point_error, point_sd, point_e : float
+        Hinge: the point's distance from the true axis (mm), the point covariance's sd and e/2
+        in the plane normal to the estimated axis (as bench/sta.py); NaN for a ball.
+    point_e_rank : float
+        Hinge: the point's ``err^T cov^+ err / rank`` against the axis point nearest the
+        template origin (the measure of test_skeleton_configs); NaN for a ball.
+    identifiable : bool
+    gated : float
+        Share of the frames seen in which the outlier gate left out markers or a whole
+        segment (parent or child).
+    """
+
+    name: str
+    kind: str
+    error: float
+    sd: float
+    e: float
+    point_error: float
+    point_sd: float
+    point_e: float
+    point_e_rank: float
+    identifiable: bool
+    gated: float
+
+
+def score(sk: Skeleton, runner: JointRunner) -> JointScore:
+    """Solve ``runner`` now (force) and compare its estimate with the skeleton's truth."""
+    assert runner.estimate(force=True), runner.last_error
+    sol = runner.estimator.solution
+    assert sol is not None, runner.cfg.name
+    template = runner.estimator.templates[0]
+    assert template is not None
+    point, direction = sk.joint_in_template(runner.cfg.name, template)
+    nan = float("nan")
+    est = runner.estimator
+    gated = sum(est.gated_frames) / max(est.n_frames_seen, 1)
+    if direction is None:
+        err = sol.centre_parent - point
+        return JointScore(runner.cfg.name, "ball", 1e3 * float(np.linalg.norm(err)), 1e3 * float(np.sqrt(np.trace(sol.cov_parent))),
+                          _index(err, sol.cov_parent), nan, nan, nan, nan, bool(sol.identifiable), gated)  # fmt: skip
+    d = sol.direction_parent * np.sign(sol.direction_parent @ direction)
+    off = point - sol.point_parent
+    off_perp = off - (off @ d) * d
+    basis = np.linalg.svd(np.eye(3) - np.outer(d, d))[0][:, :2]
+    cov_perp = basis.T @ sol.cov_point_parent @ basis
+    perp = basis.T @ off_perp
+    return JointScore(
+        runner.cfg.name, "hinge", float(np.degrees(np.arccos(min(1.0, float(d @ direction))))),
+        float(np.degrees(np.sqrt(np.trace(sol.cov_direction_parent)))), _index(d - direction, sol.cov_direction_parent),
+        1e3 * float(np.linalg.norm(off_perp)), 1e3 * float(np.sqrt(np.trace(cov_perp))),
+        float(perp @ np.linalg.solve(cov_perp, perp)) / 2.0, _index(sol.point_parent - point, sol.cov_point_parent),
+        bool(sol.identifiable), gated,
+    )  # fmt: skip
