@@ -24,13 +24,34 @@ from jointfit_ros.runner import JointRunner
 T0 = 1_000_000_000_000
 
 
-def run_stream(cfg: NodeConfig, times: NDArray[np.float64], frames: NDArray[np.float64], block: int = 100) -> list[JointRunner]:
-    """Feed ``frames`` (N, P, 3) (m) stamped at ``times`` (s) through the node's router; the runners, not yet solved."""
+def run_stream(
+    cfg: NodeConfig,
+    times: NDArray[np.float64],
+    frames: NDArray[np.float64],
+    block: int = 100,
+    estimate_period: float | None = None,
+) -> list[JointRunner]:
+    """Feed ``frames`` (N, P, 3) (m) stamped at ``times`` (s) through the node's router; the runners.
+
+    ``estimate_period`` (s of stream time): solve every joint that often, as the node does
+    (its ``estimate_period``, 0.1 s by default); the blocks then end there. None: no solve
+    during the stream (blocks of ``block`` frames). The outlier gate's limits follow the
+    latest estimate, so the two differ on skin markers (see test_skeleton_sta.py).
+    """
     raws = [pose_array_bytes(T0 + round(tk * 1e9), "world", f) for tk, f in zip(times, frames, strict=True)]
     runners = [JointRunner(j, cfg) for j in cfg.joints]
     router = MessageRouter(cfg, runners)
-    for start in range(0, len(raws), block):
-        router.markers_many(raws[start : start + block])
+    if estimate_period is None:
+        starts = list(range(0, len(raws), block))
+    else:
+        ticks = np.floor((times - times[0]) / estimate_period).astype(np.int64)
+        starts = [0, *(np.flatnonzero(np.diff(ticks)) + 1).tolist()]
+    for lo, hi in zip(starts, [*starts[1:], len(raws)], strict=True):
+        for start in range(lo, hi, block):
+            router.markers_many(raws[start : min(start + block, hi)])
+        if estimate_period is not None:
+            for r in runners:
+                r.estimate(force=True)
     assert router.counters["malformed"] == 0
     return runners
 
