@@ -56,6 +56,7 @@ from .serial import (
     lag1_autocorrelation_from_sums,
     residual_lag_sum_from_sums,
     residual_sum_squares_from_sums,
+    rotation_residual_sums,
     serial_factor,
 )
 from .stats import SlidingSums, WindowSpec, window_spec
@@ -709,16 +710,31 @@ def solve_window(request: SolveRequest) -> SolveResult:
     serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs)
     if "skin" not in request.attachment:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
-    smooth = 0.0
+    smooth, rotation_smooth = 0.0, 0.0
     if lag.n_pairs > 0:
-        # The lag-1 sum of white noise is 0 on average with sd at most RSS / sqrt(n) (a residual along one
-        # direction): three of those are not smooth (on skin markers the lag-1 sum is ~RSS, 0.95-0.998).
-        ss = residual_sum_squares_from_sums(sums, c_p, c_c)
-        lag_sum = residual_lag_sum_from_sums(lag, c_p, c_c) - 3.0 * ss / math.sqrt(lag.n_pairs)
-        smooth = max(lag_sum, 0.0) * float(sums.n) / lag.n_pairs
-    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth)
+        smooth = _smooth_energy(
+            residual_lag_sum_from_sums(lag, c_p, c_c), residual_sum_squares_from_sums(sums, c_p, c_c), lag.n_pairs, sums.n
+        )
+        if isinstance(sol, PoseSumsAxis):
+            rotation_smooth = _smooth_energy(
+                *rotation_residual_sums(sums, lag, sol.direction_parent, sol.direction_child)[::-1], lag.n_pairs, sums.n
+            )
+    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth)
     total = _with_artefact(sol, art.cov)
     return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
+
+
+def _smooth_energy(lag_sum: float, ss: float, n_pairs: float, n: float) -> float:
+    """The smooth part of a residual's energy over ``n`` frames: its lag sum per pair times ``n``, when it is not noise.
+
+    The lag sum of white noise is 0 on average with sd at most ``ss / sqrt(n_pairs)`` (a residual along
+    one direction): a lag sum within three of those is read as noise (0); above, all of it is the smooth
+    part (subtracting the threshold instead would bias the smooth part low, the more so the fewer the
+    pairs: at low frame rates).
+    """
+    if not (n_pairs > 0.0 and lag_sum > 3.0 * ss / math.sqrt(n_pairs)):
+        return 0.0
+    return lag_sum * float(n) / n_pairs
 
 
 def _sums_artefact(
@@ -727,6 +743,7 @@ def _sums_artefact(
     sol: PoseSumsCentre | PoseSumsAxis,
     centres: tuple[FloatArray, FloatArray],
     smooth: float,
+    rotation_smooth: float = 0.0,
 ) -> SumsArtefact:
     """The soft-tissue covariance of a window's estimate (skin segments weighted equally)."""
     n = float(sums.n)
@@ -740,7 +757,10 @@ def _sums_artefact(
 
         def solver(x: FloatArray) -> FloatArray:
             return hinge_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:], ref)
-    return artefact_from_sums(request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth)
+    directions = None if isinstance(sol, PoseSumsCentre) else (sol.direction_parent, sol.direction_child)
+    return artefact_from_sums(
+        request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions, rotation_smooth
+    )
 
 
 def _with_artefact(sol: PoseSumsCentre | PoseSumsAxis, cov: FloatArray) -> PoseSumsCentre | PoseSumsAxis:

@@ -52,6 +52,7 @@ __all__ = [
     "constraint_residual_autocorrelation",
     "serial_factor",
     "hinge_residual_pair",
+    "rotation_residual_sums",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -326,3 +327,36 @@ def hinge_residual_pair(
     r_c = -np.asarray(sums.sum_qt_t) - (n * p_c - S.T @ p_p)
     beta = float(n_p @ r_p - n_c @ r_c) / d_H_d if d_H_d > 0.0 else 0.0
     return p_p + beta * n_p, p_c - beta * n_c
+
+
+def rotation_residual_sums(
+    sums: PoseSums, lag: LagSums, direction_parent: ArrayLike, direction_child: ArrayLike
+) -> tuple[float, float]:
+    """``sum_k |Q_k n_c - n_p|^2`` over the frames and ``sum_k s_k . s_{k-1}`` over the lag pairs, ``s_k = Q_k n_c - n_p``.
+
+    The hinge's axis-alignment residual (dimensionless): how far each frame's
+    relative rotation is from a turn about the axis ``(n_p, n_c)``. From the
+    sums: ``n (|n_c|^2 + |n_p|^2) - 2 n_p^T S n_c`` and ``n_c^T (sum Q_k^T Q_{k-1})
+    n_c - n_p^T (sum (Q_k + Q_{k-1})) n_c + m |n_p|^2`` (the rotation blocks of
+    :class:`LagSums`). The first is clipped at 0 against rounding.
+
+    Parameters
+    ----------
+    sums : PoseSums
+    lag : LagSums
+    direction_parent, direction_child : array_like, shape (3,)
+        Unit axis directions in the parent and the child frame.
+
+    Returns
+    -------
+    ss, lag_sum : float
+    """
+    n_p = np.asarray(direction_parent, dtype=np.float64)
+    n_c = np.asarray(direction_child, dtype=np.float64)
+    ss = float(sums.n) * float(n_c @ n_c + n_p @ n_p) - 2.0 * float(n_p @ np.asarray(sums.S) @ n_c)
+    lag_sum = (
+        float(n_c @ lag.cross[:3, :3] @ n_c)
+        - float(n_p @ lag.sum_pair[:, :3] @ n_c)
+        + lag.n_pairs * float(n_p @ n_p)
+    )
+    return max(ss, 0.0), lag_sum
