@@ -50,14 +50,21 @@ from .segments import (
     centre_from_pose_sums,
 )
 from .serial import (
+    N_TIME_LAG_SUMS,
+    NOMINAL_RATE_HZ,
+    LagHistory,
     LagSums,
     SerialInflation,
+    TimeLagSums,
     hinge_residual_pair,
+    integrated_factor,
     lag1_autocorrelation_from_sums,
+    lag_nodes,
     residual_lag_sum_from_sums,
     residual_sum_squares_from_sums,
     rotation_residual_sums,
     serial_factor,
+    smooth_energy_from_lags,
 )
 from .stats import SlidingSums, WindowSpec, window_spec
 
@@ -113,7 +120,9 @@ _SS = 229
 _LAG = 233
 #: Then the soft-tissue feature sums (:func:`~jointfit_core.artefact_sums.feature_sums`; zero for rigid markers).
 _FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
-_N_SUMS = _FS.stop
+#: Then the lag pairs in seconds (:class:`~jointfit_core.serial.TimeLagSums`, :class:`~jointfit_core.serial.LagHistory`).
+_TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
+_N_SUMS = _TL.stop
 
 
 def _gather_indices() -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
@@ -501,7 +510,7 @@ def _max_sd(cov: FloatArray, limit: float) -> float:
 
 
 def _inflated(
-    sol: PoseSumsCentre | PoseSumsAxis, factor: float, rho: float, length_scale: float
+    sol: PoseSumsCentre | PoseSumsAxis, factor: float, seconds: float, length_scale: float
 ) -> PoseSumsCentre | PoseSumsAxis:
     """The estimate with its covariances times ``factor``; flagged when they exceed the verdict's limits.
 
@@ -510,7 +519,7 @@ def _inflated(
     above :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`); an estimate already
     flagged keeps its reason.
     """
-    why = f"(lag-1 autocorrelation of the joint residual {rho:.3f}: covariance x{factor:.3g})"
+    why = f"(the joint residual is correlated over {seconds:.3g} s of data: covariance x{factor:.3g})"
     advice = "record more, and more varied, movement cycles"
     identifiable, reason = sol.identifiable, sol.reason
     if isinstance(sol, PoseSumsCentre):
@@ -563,7 +572,8 @@ def _serial_to_dict(serial: SerialInflation) -> dict[str, float | None]:
 def _serial_from_dict(data: Any) -> SerialInflation:
     if not isinstance(data, dict):
         raise InputError(f"calibration: serial_inflation: expected a mapping, got {type(data).__name__}")
-    vals = {k: float("nan") if data.get(k) is None else float(data[k]) for k in ("rho", "rho_raw", "factor", "n_pairs")}
+    keys = ("rho", "rho_raw", "factor", "n_pairs", "frame_interval_s")  # the last absent before it existed
+    vals = {k: float("nan") if data.get(k) is None else float(data[k]) for k in keys}
     return SerialInflation(**vals)
 
 
@@ -701,40 +711,33 @@ def solve_window(request: SolveRequest) -> SolveResult:
         sol = axis_from_pose_sums(sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction)
         c_p, c_c = hinge_residual_pair(sums, sol.direction_parent, sol.direction_child, sol.point_parent, sol.point_child)
     lag = LagSums.from_vector(request.sums[_LAG : _LAG + 29])
+    tl = TimeLagSums.from_vector(request.sums[_TL])
+    nodes = lag_nodes(lag, tl)
+    lags = np.array([x for x, _ in nodes])
+    counts = np.array([node.n_pairs for _, node in nodes])
+    ss = residual_sum_squares_from_sums(sums, c_p, c_c)
+    lag_sums = np.array([residual_lag_sum_from_sums(node, c_p, c_c) for _, node in nodes])
     rho_raw = lag1_autocorrelation_from_sums(sums, lag, c_p, c_c)
-    rho, factor = serial_factor(rho_raw)
-    if not request.serial_correlation:
-        factor = 1.0
+    rho, _ = serial_factor(rho_raw)
+    dt = tl.frame_interval
+    factor = 1.0
+    if request.serial_correlation and lags.size and ss > 0.0:
+        factor = integrated_factor(lags, lag_sums / counts / (ss / float(sums.n)), dt, float(sums.n), counts)
     if factor != 1.0:
-        sol = _inflated(sol, factor, rho, scale)
-    serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs)
+        sol = _inflated(sol, factor, factor * dt, scale)
+    serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs, frame_interval_s=dt)
     if "skin" not in request.attachment:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
     smooth, rotation_smooth = 0.0, 0.0
-    if lag.n_pairs > 0:
-        smooth = _smooth_energy(
-            residual_lag_sum_from_sums(lag, c_p, c_c), residual_sum_squares_from_sums(sums, c_p, c_c), lag.n_pairs, sums.n
-        )
+    if lags.size:
+        smooth = smooth_energy_from_lags(lag_sums, counts, lags, ss, float(sums.n))
         if isinstance(sol, PoseSumsAxis):
-            rotation_smooth = _smooth_energy(
-                *rotation_residual_sums(sums, lag, sol.direction_parent, sol.direction_child)[::-1], lag.n_pairs, sums.n
-            )
+            n_p, n_c = sol.direction_parent, sol.direction_child
+            rot = [rotation_residual_sums(sums, node, n_p, n_c) for _, node in nodes]
+            rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rot[0][0], float(sums.n))
     art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth)
     total = _with_artefact(sol, art.cov)
     return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
-
-
-def _smooth_energy(lag_sum: float, ss: float, n_pairs: float, n: float) -> float:
-    """The smooth part of a residual's energy over ``n`` frames: its lag sum per pair times ``n``, when it is not noise.
-
-    The lag sum of white noise is 0 on average with sd at most ``ss / sqrt(n_pairs)`` (a residual along
-    one direction): a lag sum within three of those is read as noise (0); above, all of it is the smooth
-    part (subtracting the threshold instead would bias the smooth part low, the more so the fewer the
-    pairs: at low frame rates).
-    """
-    if not (n_pairs > 0.0 and lag_sum > 3.0 * ss / math.sqrt(n_pairs)):
-        return 0.0
-    return lag_sum * float(n) / n_pairs
 
 
 def _sums_artefact(
@@ -1055,6 +1058,8 @@ class OnlineJoint:
         self._x_buf = np.zeros((3, 4))  # [R_c | d_c - d_p]
         self._z_prev = np.zeros((3, 4))  # Z of the previous frame that entered the statistics
         self._prev_in = False  # whether the previous frame that reached _add entered the statistics
+        self._history = LagHistory()  # recent frames in the statistics, for the pairs at lags in seconds
+        self._tl_view = self._contribution[_TL]
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
         self._serial: SerialInflation | None = None
@@ -1402,7 +1407,7 @@ class OnlineJoint:
             before_in = np.empty(m, dtype=bool)
             before_in[0] = self._prev_in
             before_in[1:] = entered[:-1]
-            self._push_block(Y[rows], slots[rows], before_in[rows], st, rows)
+            self._push_block(Y[rows], slots[rows], before_in[rows], st, rows, numbers)
         self._prev_in = bool(entered[-1])
 
     def _gated_block(
@@ -1510,7 +1515,7 @@ class OnlineJoint:
                 if self._joint.residual is not None:
                     z = _relative_poses(R[pos], d[pos])
                     self._joint.passed(z, numbers[run], self._joint.scores_of(z, numbers[run]), False)
-                self._push_block(Y[run], slots[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
+                self._push_block(Y[run], slots[run], before_in, st, run, numbers, (R[pos], d[pos], ss[pos]))
             if start < f:
                 self._prev_in = bool(entered[f - 1])
                 lo, hi = np.searchsorted(rows, (start, f))
@@ -1583,11 +1588,13 @@ class OnlineJoint:
         paired: NDArray[np.bool_],
         st: FloatArray | None,
         rows: NDArray[np.intp],
+        numbers: NDArray[np.int64],
         poses: tuple[FloatArray, FloatArray, FloatArray] | None = None,
     ) -> None:
         """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair sets of slots ``which``) and push them.
 
-        ``rows``: their indices in the block. ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
+        ``rows``: their indices in the block; ``numbers``: the block's frame numbers (the times of
+        frames without stamps). ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
         """
         m = Y.shape[0]
         if poses is None:
@@ -1607,6 +1614,9 @@ class OnlineJoint:
         z_prev = np.empty_like(z)
         z_prev[0] = self._z_prev
         z_prev[1:] = z[:-1]
+        times = stamps if stamps is not None else numbers[rows] / NOMINAL_RATE_HZ
+        lagged = np.empty((m, N_TIME_LAG_SUMS))
+        self._history.contributions(np.asarray(times, dtype=np.float64), z, lagged)
         table = self._pair_table()
         dof_sets, W_sets = table[5], table[6]
         if self._sums.spec.exponential:
@@ -1628,6 +1638,7 @@ class OnlineJoint:
             cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
             total[_LAG + 13 : _LAG + 29] = cross.ravel()
             total[_FS] = w @ feature_sums(z[:, :, :3], z[:, :, 3]) if self._skin else 0.0
+            total[_TL] = w @ lagged
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
             pr = np.flatnonzero(paired)
@@ -1643,6 +1654,7 @@ class OnlineJoint:
             c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
             if self._skin:
                 c[:, _FS] = feature_sums(z[:, :, :3], z[:, :, 3])
+            c[:, _TL] = lagged
             c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
             self._sums.push_many(c, stamps)
         self._version += 1
@@ -2063,6 +2075,7 @@ class OnlineJoint:
                 np.matmul(z.T, self._z_prev, out=self._cross_view)
             elif c[_LAG] != 0.0:
                 c[_LAG : _LAG + 29] = 0.0
+            self._history.contribution_one(stamp if stamp is not None else frame_no / NOMINAL_RATE_HZ, z, self._tl_view)
             if self._sums is None:
                 self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
             self._sums.push(c, stamp)
@@ -2113,6 +2126,16 @@ class OnlineJoint:
             No frame has entered the statistics yet.
         """
         return LagSums.from_vector(self._entered_sums()[_LAG : _LAG + 29])
+
+    def time_lag_sums(self) -> TimeLagSums:
+        """The window's lag-pair sums at lags in seconds (:class:`~jointfit_core.serial.TimeLagSums`).
+
+        Raises
+        ------
+        InputError
+            No frame has entered the statistics yet.
+        """
+        return TimeLagSums.from_vector(self._entered_sums()[_TL])
 
     def sums_vector(self) -> FloatArray | None:
         """A copy of the window's sums vector (the layout :meth:`request_for` takes); None before any frame entered."""
