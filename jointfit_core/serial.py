@@ -462,11 +462,14 @@ class LagHistory:
         self._z = np.empty((256, 12))
         self._n = 0
         self._ptr = [0] * len(self._lags)  # per lag, a frame at or before its last target (per-frame path)
+        self._times: list[float] = []  # the times as Python floats (the per-frame path's search)
+        self._vals = np.zeros((len(self._lags), _NODE))
 
     def clear(self) -> None:
         """Forget the frames (a break: no pair reaches across it)."""
         self._n = 0
         self._ptr = [0] * len(self._lags)
+        self._times = []
 
     def _append(self, t: FloatArray, z: FloatArray) -> int:
         """Append (trimming what no new frame can pair with); the index of the first new frame."""
@@ -490,63 +493,67 @@ class LagHistory:
         self._t[keep : keep + m] = t
         self._z[keep : keep + m] = z
         self._n = keep + m
+        self._times = self._t[: self._n].tolist()
         return keep
 
     def contribution_one(self, time: float, z: FloatArray, out: FloatArray) -> None:
         """:meth:`contributions` of one frame, ``out`` (N_TIME_LAG_SUMS,); equal to it (tested).
 
-        The per-frame path: a pointer per lag walks forward through the history (a step or two per
-        frame) instead of a binary search, and the pairs are written in one go.
+        The per-frame path: a pointer per lag walks forward through the times (a step or two per
+        frame, on Python floats) instead of a binary search, and the pairs are written in one go.
         """
         n = self._n
-        if n and not time > self._t[n - 1]:
+        T = self._times
+        if n and not time > T[n - 1]:
             self.clear()
             n = 0
+            T = self._times
         if n == self._t.size:
             self._append(np.array([time]), z.reshape(1, 12))
             n = self._n - 1
+            T = self._times
         else:
             self._t[n] = time
             self._z[n] = z.reshape(12)
             self._n = n + 1
+            T.append(time)
         out.fill(0.0)
         if n == 0:
             return
-        T = self._t
         out[0] = 1.0
-        out[1] = time - float(T[n - 1])
+        out[1] = time - T[n - 1]
         ptr = self._ptr
-        rows, gaps = [], []
+        rows: list[int] = []
+        gaps: list[float] = []
+        lags: list[int] = []
         for j, lag in enumerate(self._lags):
             target = time - lag
-            p = min(ptr[j], n - 1)
+            p = ptr[j]
+            if p >= n:
+                p = n - 1
             while p + 1 < n and T[p + 1] <= target:
                 p += 1
             ptr[j] = p
-            best = p
-            if p + 1 < n and abs(float(T[p + 1]) - target) < abs(float(T[p]) - target):
-                best = p + 1
-            gap = time - float(T[best])
+            if p + 1 < n and abs(T[p + 1] - target) < abs(T[p] - target):
+                p += 1
+            gap = time - T[p]
             if abs(gap - lag) <= LAG_TOLERANCE * lag:
-                rows.append(best)
+                rows.append(p)
                 gaps.append(gap)
-            else:
-                rows.append(-1)
-        if len(gaps) == 0:
+                lags.append(j)
+        if not rows:
             return
-        blocks = out[2:].reshape(len(self._lags), _NODE)
-        if len(gaps) == len(rows):
-            sel: slice | list[int] = slice(None)
-            prev = self._z[rows].reshape(-1, 3, 4)
-        else:
-            sel = [j for j, r in enumerate(rows) if r >= 0]
-            prev = self._z[[r for r in rows if r >= 0]].reshape(-1, 3, 4)
-        vals = np.empty((len(gaps), _NODE))
+        prev = self._z[rows].reshape(-1, 3, 4)
+        vals = self._vals[: len(rows)]
         vals[:, 0] = 1.0
         vals[:, 1:13] = (prev + z).reshape(-1, 12)
         vals[:, 13:29] = np.matmul(z.T, prev).reshape(-1, 16)
         vals[:, 29] = gaps
-        blocks[sel] = vals
+        blocks = out[2:].reshape(len(self._lags), _NODE)
+        if len(rows) == len(self._lags):
+            blocks[...] = vals
+        else:
+            blocks[lags] = vals
 
     def contributions(self, times: FloatArray, z: FloatArray, out: FloatArray) -> None:
         """Add frames and write their contributions (M, :data:`N_TIME_LAG_SUMS`) to ``out``.
@@ -562,6 +569,15 @@ class LagHistory:
             :data:`SERIAL_LAGS_S` earlier (zero where no frame is within :data:`LAG_TOLERANCE`).
         """
         m = times.size
+        if m == 0:
+            return
+        back = np.flatnonzero(np.diff(times) <= 0.0)
+        if back.size:  # a time that does not increase restarts the history there (as frame by frame)
+            cut = int(back[0]) + 1
+            self.contributions(times[:cut], z[:cut], out[:cut])
+            self.clear()
+            self.contributions(times[cut:], z[cut:], out[cut:])
+            return
         h = self._append(times, z.reshape(m, 12))
         T, Z = self._t[: self._n], self._z[: self._n]
         own = h + np.arange(m)

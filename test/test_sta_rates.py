@@ -97,6 +97,16 @@ def test_lag_history_pairs_in_blocks_equal_those_one_by_one() -> None:
     assert np.all(np.abs(gap[paired] - target) <= 0.5 * target)
     after = (times[2000:, None] - times[1999]) * np.ones((1, lags.size))
     assert np.all(gap[2000:][paired[2000:]] < after[paired[2000:]])  # no pair reaches across the 5 s occlusion
+    # times that go back (a new recording) restart the pairs, in a block as frame by frame
+    times_back = times.copy()
+    times_back[2500:] -= 100.0
+    one_back, block_back = np.zeros_like(one), np.zeros_like(one)
+    history = LagHistory()
+    for k in range(n):
+        history.contribution_one(float(times_back[k]), z[k], one_back[k])
+    LagHistory().contributions(times_back, z, block_back)
+    np.testing.assert_array_equal(block_back, one_back)
+    assert not block_back[2500, 2::30].any() and block_back[2500, 0] == 0.0
     # a pair's sums are those of its two relative poses
     k, j = 1500, 3
     partner = int(np.argmin(np.abs(times - (times[k] - gap[k, j]))))
