@@ -649,7 +649,7 @@ class SolveResult:
     solution : PoseSumsCentre or PoseSumsAxis
         The estimate, covariances with the serial-correlation factor.
     serial : SerialInflation
-        The residual's lag-1 correlation and the factor applied.
+        The residual's lag-1 correlation, the frame interval and the factor applied.
     noise_std : tuple of float
         The marker noise (parent, child) used, input units.
     generation, version : int
@@ -694,8 +694,12 @@ def solve_window(request: SolveRequest) -> SolveResult:
     Ball: :func:`~jointfit_core.segments.centre_from_pose_sums`; hinge:
     :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` (Stoddart et al.,
     eqs. 10-13 and 19, on running sums). The factor is
-    :func:`~jointfit_core.serial.serial_factor` of the joint residual's lag-1
-    autocorrelation (see :class:`OnlineJoint`'s Notes).
+    :func:`~jointfit_core.serial.integrated_factor` of the joint residual's
+    autocorrelation at the frame interval and at lags in seconds (see
+    :class:`OnlineJoint`'s Notes); skin markers add the soft-tissue part,
+    scaled from the residual's smooth part
+    (:func:`~jointfit_core.serial.smooth_energy_from_lags`; hinge: also from
+    the axis-alignment residual, :func:`~jointfit_core.serial.rotation_residual_sums`).
     """
     sums, Wp_unit, Wc_unit, sigma_p, sigma_c = _unpack_pose_sums(request.sums)
     fixed_p, fixed_c = request.noise_std
@@ -850,11 +854,11 @@ class OnlineJoint:
         instead of the residual estimate (None: estimate); needed with
         virtual markers, whose pose fits have no residual.
     serial_correlation : bool
-        Multiply the estimate's covariances by ``(1 + rho) / (1 - rho)``,
-        ``rho`` the lag-1 autocorrelation of the joint-constraint residual
-        over the window (default True; see Notes). False gives the
-        covariances of the closed forms on the window exactly; ``rho`` is
-        measured and reported (:attr:`serial_inflation`) either way.
+        Multiply the estimate's covariances by the integrated autocorrelation
+        of the joint-constraint residual over the window, read at lags in
+        seconds (default True; see Notes). False gives the covariances of the
+        closed forms on the window exactly; the lag-1 ``rho`` is measured and
+        reported (:attr:`serial_inflation`) either way.
     gate : float
         Outlier gate (default 5; 0 disables it): once the templates and a
         noise estimate exist, a segment whose markers, posed in its template
@@ -901,19 +905,29 @@ class OnlineJoint:
     **Serial correlation** (``serial_correlation=True``). Those covariances
     treat the frames as independent. Soft-tissue artefact moves markers
     smoothly, so the constraint residual ``r_k = c_p - Q_k c_c - t_k`` is
-    correlated from frame to frame (lag-1 autocorrelation 0.95-0.998 on skin
-    markers at 100 Hz) and N frames carry the information of about
-    ``N (1 - rho) / (1 + rho)`` independent ones. The window therefore also
-    keeps, per frame k, the products of its relative pose with that of frame
-    k-1 (:mod:`jointfit_core.serial`), from which
-    ``rho = (sum_pairs r_k . r_{k-1} / n_pairs) / (sum_frames |r_k|^2 / n)``
+    correlated in time (lag-1 autocorrelation 0.95-0.998 on skin markers at
+    100 Hz; the real hip's falls to 0.45 at 0.32 s and to 0 at 0.64 s) and
+    N frames carry the information of about ``N / F`` independent ones, ``F =
+    1 + 2 sum_l (1 - l dt / T) rho(l dt)`` the integrated autocorrelation
+    (Bartlett, ``T`` = :data:`~jointfit_core.serial.SERIAL_WINDOW_S`). The
+    window therefore also keeps, per frame k, the products of its relative
+    pose with that of frame k-1 and with those of the frames
+    :data:`~jointfit_core.serial.SERIAL_LAGS_S` seconds earlier
+    (:mod:`jointfit_core.serial`, :class:`~jointfit_core.serial.LagHistory`:
+    pairs found from the stamps, frames without stamps counted at
+    :data:`~jointfit_core.serial.NOMINAL_RATE_HZ`), from which
+    ``rho(lag) = (sum_pairs r_k . r_j / n_pairs) / (sum_frames |r_k|^2 / n)``
     at the estimate (ball: the centres; hinge: the solved axis-point pair,
-    :func:`~jointfit_core.serial.hinge_residual_pair`), clipped to
-    ``[0, RHO_MAX]``; every covariance of the estimate (ball: ``cov``,
-    ``cov_parent``, ``cov_child``; hinge: directions and points) is
-    multiplied by ``(1 + rho) / (1 - rho)``, as
-    :func:`~jointfit_core.model_error.residual_inflation` does for the batch
-    fits. Its ``chi2`` factor is not applied: the sandwich's middle is the
+    :func:`~jointfit_core.serial.hinge_residual_pair`), and every covariance
+    of the estimate (ball: ``cov``, ``cov_parent``, ``cov_child``; hinge:
+    directions and points) is multiplied by
+    :func:`~jointfit_core.serial.integrated_factor` of them (summed until the
+    correlation is noise). Reading the correlation in seconds makes ``N dt /
+    F``, the seconds per independent sample, the same at any frame rate; the
+    lag-1 AR(1) factor ``(1 + rho) / (1 - rho)`` that
+    :func:`~jointfit_core.model_error.residual_inflation` applies to the batch
+    fits is not (real hip: 2 effective frames at 100 Hz, 8 at 12.5 Hz; now
+    30 and 29). The batch fits' ``chi2`` factor is not applied: the sandwich's middle is the
     residual covariance predicted from the pooled pose-fit noise, which on
     skin markers already grows with the cluster deformation (right hip
     fixture: ``sum |r|^2 / ((N - 2) tr W) = 1.09``); artefact that moves a
@@ -931,7 +945,8 @@ class OnlineJoint:
     sums are the batch sums of its frames
     (:func:`~jointfit_core.segments.pose_sums_from_relative`) and of the
     pairs ending in them (:func:`~jointfit_core.serial.lag_sums_from_relative`
-    over the window and the frame before it).
+    over the window and the frame before it). The pairs at lags in seconds are
+    stored with their later frame in the same way.
 
     **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
     ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise

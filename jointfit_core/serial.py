@@ -1,13 +1,21 @@
-"""Frame-to-frame (lag-1) correlation of the joint-constraint residual, from running sums.
+"""Correlation in time of the joint-constraint residual, from running sums: frame to frame and at lags in seconds.
 
 A closed-form joint estimate averages a per-frame constraint residual over N
 frames. Its covariance, propagated as if the frames were independent, is
 far too small when the residual is smooth in time (soft-tissue artefact at
 100 Hz: lag-1 autocorrelation 0.95-0.998), because then N frames carry the
-information of about ``N (1 - rho) / (1 + rho)`` independent ones. This
-module measures that autocorrelation ``rho`` of the residual of the two-segment
-constraint from sums that an online estimator keeps in O(1) per frame, and
-gives the matching batch formulas (for tests and offline use).
+information of about ``N / F`` independent ones, ``F`` the residual's
+integrated autocorrelation. This module measures the autocorrelation of the
+residual of the two-segment constraint from sums that an online estimator
+keeps in O(1) per frame, and gives the matching batch formulas (for tests
+and offline use): at lag 1 (:class:`LagSums`), and at lags in seconds
+(:data:`SERIAL_LAGS_S`, :class:`TimeLagSums`, :class:`LagHistory`), from
+which :func:`integrated_factor` gives ``F`` whatever the frame rate (the
+AR(1) ``(1 + rho) / (1 - rho)`` of the lag-1 ``rho`` alone does not:
+``bench/serial_lags.py``). The lag sums also tell the residual's smooth part
+from white noise (:func:`smooth_energy_from_lags`), which scales the
+soft-tissue covariance, and give the hinge's axis-alignment residual
+(:func:`rotation_residual_sums`).
 
 The residual of frame k is linear in the parameters ``x = (c_p, c_c)``:
 ``r_k = c_p - Q_k c_c - t_k = c_p - Z_k u`` with ``Z_k = [Q_k | t_k]``

@@ -27,8 +27,11 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from jointfit_core.pose import poses_from_markers
 from jointfit_core.segments import PoseSums, PoseSumsCentre, pose_sums_from_relative, relative_poses
 from jointfit_core.serial import (
+    N_TIME_LAG_SUMS,
     RHO_MAX,
+    LagHistory,
     LagSums,
+    TimeLagSums,
     constraint_residual_autocorrelation,
     hinge_residual_pair,
     integrated_factor,
@@ -38,6 +41,7 @@ from jointfit_core.serial import (
     residual_lag_sum_from_sums,
     residual_sum_squares_from_sums,
     serial_factor,
+    time_lag_sums_from_relative,
 )
 from jointfit_core.synthetic import TwoSegmentMotion, two_segment_motion
 
@@ -253,6 +257,22 @@ def test_online_lag_sums_equal_the_batch_sums_of_the_window(kind: str) -> None:
                 np.where(ok[:, None, None], Q, np.nan)[first - 1 :], np.where(ok[:, None], t, np.nan)[first - 1 :]
             )
             assert _rel(direct.cross, lag.cross) < 1e-12
+            # the pairs at lags in seconds: those of the window's frames, found among all frames that entered
+            contrib = np.zeros((rows.size, N_TIME_LAG_SUMS))
+            LagHistory().contributions(st[rows], Z[rows], contrib)
+            expected = TimeLagSums.from_vector(contrib[-300:].sum(axis=0))
+            online_tl = est.time_lag_sums()
+            assert online_tl.n_gaps == expected.n_gaps and online_tl.frame_interval == pytest.approx(
+                expected.frame_interval, rel=1e-12
+            )
+            for got, want in zip(online_tl.nodes, expected.nodes, strict=True):
+                assert got.n_pairs == want.n_pairs and want.n_pairs > 100
+                assert _rel(got.sum_pair, want.sum_pair) < 1e-9 and _rel(got.cross, want.cross) < 1e-9
+            np.testing.assert_allclose(online_tl.sum_lags, expected.sum_lags, rtol=1e-9)
+            whole = time_lag_sums_from_relative(
+                np.where(ok[:, None, None], Q, np.nan), np.where(ok[:, None], t, np.nan), st
+            )
+            np.testing.assert_allclose(whole.sum_lags, contrib.sum(axis=0)[2:].reshape(-1, 30)[:, 29], rtol=1e-12)
 
 
 def test_lag_pairs_follow_the_frames_that_enter_the_statistics() -> None:
