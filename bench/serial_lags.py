@@ -2,9 +2,10 @@
 
 Run with ``PYTHONPATH=. python bench/serial_lags.py`` (repository root; under a minute). Prints
 Markdown and writes ``bench/results/serial_lags.md``. Evidence for issue 17's frame-rate question:
-the online covariance is inflated by the AR(1) factor ``(1 + rho_1) / (1 - rho_1)`` of the residual's
-lag-1 autocorrelation (:mod:`jointfit_core.serial`). That factor is the variance ratio of a mean only
-when the correlation decays exponentially; this script measures the decay.
+the online covariance was inflated by the AR(1) factor ``(1 + rho_1) / (1 - rho_1)`` of the residual's
+lag-1 autocorrelation. That factor is the variance ratio of a mean only when the correlation decays
+exponentially; this script measures the decay. (The online estimator now uses an integrated factor over
+lags in seconds, :func:`jointfit_core.serial.integrated_factor`; ``bench/sta_online.py`` measures it.)
 
 What is measured
 ----------------

@@ -19,9 +19,12 @@ same propagation needs and does it on them:
   the window: ``sum_t Q_t f_t`` grows like N, and so does the normal matrix.
 
 The prior's overall scale ``s`` is read from the data: the smooth part of
-the joint residual (its lag-1 autocovariance, to which white marker noise
-contributes nothing) is the visible part of the same cluster motion, whose
-expected size per unit prior is known from the geometry and the movement.
+the joint residual (its autocovariance at short lags, to which white marker
+noise contributes nothing) is the visible part of the same cluster motion,
+whose expected size per unit prior is known from the geometry and the
+movement. A hinge has a second reading, from its axis-alignment residual
+``Q_t n_c - n_p``, which sees the cluster turns that tilt the axis; the
+larger of the two is used.
 """
 
 from __future__ import annotations
@@ -175,6 +178,11 @@ def _centred(fs: FloatArray, n: float, S: FloatArray, sum_t: FloatArray, sum_qt:
     return SQ, ST, SP, np.array(ff)
 
 
+def _prior_variances(radius: float) -> FloatArray:
+    """Per unit scale, the prior variances of one cluster's ``(omega, u)`` (6,): ``1 / r^2`` and 1."""
+    return np.concatenate([np.full(3, 1.0 / max(radius**2, 1e-300)), np.ones(3)])
+
+
 def _sum_perturbations(SQ: FloatArray, ST: FloatArray, SP: FloatArray) -> FloatArray:
     """Change of ``(S, sum t, sum Q^T t)`` (15,) per unit entry of ``G``: (15, 12, 9).
 
@@ -224,6 +232,8 @@ def artefact_from_sums(
     radii: tuple[float, float],
     weights: tuple[float, float],
     smooth_energy: float,
+    directions: tuple[FloatArray, FloatArray] | None = None,
+    rotation_smooth: float = 0.0,
 ) -> SumsArtefact:
     """Soft-tissue covariance of a sums-based estimate (first order in the cluster motion).
 
@@ -247,8 +257,15 @@ def artefact_from_sums(
     weights : (float, float)
         Relative artefact size of the parent and the child (0: rigid).
     smooth_energy : float
-        ``n / n_pairs sum_pairs r_k . r_{k-1}`` of the joint residual at
-        ``centres`` (input units squared): its smooth part.
+        The smooth part of the joint residual's energy at ``centres``
+        (input units squared, summed over the frames): what white marker
+        noise does not explain.
+    directions : (ndarray (3,), ndarray (3,)), optional
+        Hinge: the axis directions ``(n_p, n_c)``, which are also the first
+        six parameters ``solver`` returns. The axis-alignment residual
+        ``Q_t n_c - n_p`` then gives a second reading of the scale.
+    rotation_smooth : float
+        Hinge: the smooth part of ``sum_t |Q_t n_c - n_p|^2`` (dimensionless).
 
     Returns
     -------
@@ -257,41 +274,53 @@ def artefact_from_sums(
     Notes
     -----
     ``d params = J_x dx``, ``dx = sum_jk Delta_jk G_jk`` (:func:`_sum_perturbations`),
-    so ``cov = s^2 J_x (sum_jk v_j Delta_jk Delta_jk^T) J_x^T``. Per unit
-    ``s^2`` the residual ``r_t = c_p - Q_t c_c - t_t`` gains ``D_t g_t`` (the
-    Jacobian of the batch fits) minus what the refit absorbs, so its
+    so ``cov = s^2 J_x (sum_jk v_j Delta_jk Delta_jk^T) J_x^T``.
+    Per unit ``s^2`` the residual ``r_t = c_p - Q_t c_c - t_t`` gains ``D_t g_t``
+    (the Jacobian of the batch fits) minus what the refit absorbs, so its
     expected sum of squares is ``sum_j v_j |D e_j|^2 sum_t |f_t - fbar|^2 -
     sum_jk v_j da_jk^T A da_jk`` (``A`` the normal matrix of eq. 9, ``da``
     the change of the centre pair); ``s^2`` is the residual's smooth energy
     over it.
+    Hinge: a cluster's turn about a line through the axis point (the shank's
+    long axis) tilts the estimated axis but hardly moves the point, so the
+    point residual may show almost nothing of the motion that biases the
+    direction most; the alignment residual ``Q_t n_c - n_p`` shows every
+    turn off the axis (``|omega x n|^2``, ``2 / r^2`` per unit scale, minus what
+    the direction's refit absorbs, ``dn^T A dn``). The scale is the larger of
+    the two readings (without it, a knee whose shank cluster turned about
+    the shank read no artefact and was confidently wrong: ``bench/sta_online.py``).
     """
     m = solver(np.concatenate([S.ravel(), sum_t, sum_qt])).size
-    zero = SumsArtefact(np.zeros((m, m)), 0.0)
     w = np.asarray(weights, dtype=np.float64)
-    if n < 3 or float(w.sum()) <= 0.0:
-        return zero
-    SQ, ST, SP, ff = _centred(fs, n, S, sum_t, sum_qt)
+    smooth_energy = float(smooth_energy) if np.isfinite(smooth_energy) else 0.0
+    rotation_smooth = float(rotation_smooth) if directions is not None and np.isfinite(rotation_smooth) else 0.0
+    if n < 3 or not float(w.max()) > 0.0 or not max(smooth_energy, rotation_smooth) > 0.0:
+        return SumsArtefact(np.zeros((m, m)), 0.0)
+    SQ, ST, SP, ff_arr = _centred(fs, n, S, sum_t, sum_qt)
+    ff = float(ff_arr)
     delta = _sum_perturbations(SQ, ST, SP).reshape(15, 108)
-    v = np.concatenate([np.full(3, 1.0 / max(radii[0] ** 2, 1e-300)), np.ones(3)]) * w[0]
-    v = np.concatenate([v, np.concatenate([np.full(3, 1.0 / max(radii[1] ** 2, 1e-300)), np.ones(3)]) * w[1]])
-    vjk = np.repeat(v, 9)
     x0 = np.concatenate([S.ravel(), sum_t, sum_qt])
     length = max(float(np.linalg.norm(sum_t)) / n, float(np.linalg.norm(sum_qt)) / n, max(radii), 1e-300)
     steps = np.concatenate([np.full(9, n), np.full(6, n * length)])
-    Jx = _jacobian(solver, x0, steps)
-    dparams = Jx @ delta  # (m, 108)
-    cov_unit = (dparams * vjk) @ dparams.T
+    dparams = _jacobian(solver, x0, steps) @ delta  # (m, 108)
     # visible residual energy per unit s^2 (ball normal matrix, centre pair from eq. 9)
-    Jc = _jacobian(lambda x: ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:]), x0, steps)
-    da = Jc @ delta
+    da = _jacobian(lambda x: ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:]), x0, steps) @ delta
     A = np.block([[n * np.eye(3), -S], [-S.T, n * np.eye(3)]])
-    c_p, c_c = centres
+    absorbed_jk = np.einsum("ik,ij,jk->k", da, A, da)  # (108,)
+    # hinge: what the directions' refit absorbs of the alignment residual (its normal matrix is A too)
+    absorbed_rot = np.einsum("ik,ij,jk->k", dparams[:6], A, dparams[:6]) if directions is not None else absorbed_jk
+    var = np.concatenate([_prior_variances(radii[0]) * w[0], _prior_variances(radii[1]) * w[1]])
+    vjk = np.repeat(var, 9)
+    c_p, c_c = (np.asarray(c, dtype=np.float64) for c in centres)
     direct = w[0] * (2.0 * float(c_p @ c_p) / max(radii[0] ** 2, 1e-300) + 3.0)
     direct += w[1] * (2.0 * float(c_c @ c_c) / max(radii[1] ** 2, 1e-300) + 3.0)
-    absorbed = float(np.einsum("ik,ij,jk,k->", da, A, da, vjk))
-    visible = direct * float(ff) - absorbed
-    if not (visible > 0.0 and np.isfinite(smooth_energy) and smooth_energy > 0.0):
-        return zero
-    scale2 = smooth_energy / visible
-    cov = scale2 * 0.5 * (cov_unit + cov_unit.T)
-    return SumsArtefact(cov, float(np.sqrt(scale2 * float(w.max()))))
+    visible = direct * ff - float(absorbed_jk @ vjk)
+    scale2 = smooth_energy / visible if visible > 0.0 else 0.0
+    if directions is not None:
+        # only the turns (omega) reach the alignment residual: |omega x n|^2 has 2 / r^2 per unit scale
+        rot = np.concatenate([var[:3], np.zeros(3), var[6:9], np.zeros(3)])
+        visible_rot = 2.0 * float(rot[0] + rot[6]) * ff - float(absorbed_rot @ np.repeat(rot, 9))
+        if visible_rot > 0.0:
+            scale2 = max(scale2, rotation_smooth / visible_rot)
+    cov = scale2 * ((dparams * vjk) @ dparams.T)
+    return SumsArtefact(0.5 * (cov + cov.T), math.sqrt(scale2 * float(w.max())))

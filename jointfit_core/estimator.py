@@ -50,13 +50,21 @@ from .segments import (
     centre_from_pose_sums,
 )
 from .serial import (
+    N_TIME_LAG_SUMS,
+    NOMINAL_RATE_HZ,
+    LagHistory,
     LagSums,
     SerialInflation,
+    TimeLagSums,
     hinge_residual_pair,
+    integrated_factor,
     lag1_autocorrelation_from_sums,
+    lag_nodes,
     residual_lag_sum_from_sums,
     residual_sum_squares_from_sums,
+    rotation_residual_sums,
     serial_factor,
+    smooth_energy_from_lags,
 )
 from .stats import SlidingSums, WindowSpec, window_spec
 
@@ -112,7 +120,9 @@ _SS = 229
 _LAG = 233
 #: Then the soft-tissue feature sums (:func:`~jointfit_core.artefact_sums.feature_sums`; zero for rigid markers).
 _FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
-_N_SUMS = _FS.stop
+#: Then the lag pairs in seconds (:class:`~jointfit_core.serial.TimeLagSums`, :class:`~jointfit_core.serial.LagHistory`).
+_TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
+_N_SUMS = _TL.stop
 
 
 def _gather_indices() -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
@@ -500,7 +510,7 @@ def _max_sd(cov: FloatArray, limit: float) -> float:
 
 
 def _inflated(
-    sol: PoseSumsCentre | PoseSumsAxis, factor: float, rho: float, length_scale: float
+    sol: PoseSumsCentre | PoseSumsAxis, factor: float, seconds: float, length_scale: float
 ) -> PoseSumsCentre | PoseSumsAxis:
     """The estimate with its covariances times ``factor``; flagged when they exceed the verdict's limits.
 
@@ -509,7 +519,7 @@ def _inflated(
     above :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`); an estimate already
     flagged keeps its reason.
     """
-    why = f"(lag-1 autocorrelation of the joint residual {rho:.3f}: covariance x{factor:.3g})"
+    why = f"(the joint residual is correlated over {seconds:.3g} s of data: covariance x{factor:.3g})"
     advice = "record more, and more varied, movement cycles"
     identifiable, reason = sol.identifiable, sol.reason
     if isinstance(sol, PoseSumsCentre):
@@ -562,7 +572,8 @@ def _serial_to_dict(serial: SerialInflation) -> dict[str, float | None]:
 def _serial_from_dict(data: Any) -> SerialInflation:
     if not isinstance(data, dict):
         raise InputError(f"calibration: serial_inflation: expected a mapping, got {type(data).__name__}")
-    vals = {k: float("nan") if data.get(k) is None else float(data[k]) for k in ("rho", "rho_raw", "factor", "n_pairs")}
+    keys = ("rho", "rho_raw", "factor", "n_pairs", "frame_interval_s")  # the last absent before it existed
+    vals = {k: float("nan") if data.get(k) is None else float(data[k]) for k in keys}
     return SerialInflation(**vals)
 
 
@@ -638,7 +649,7 @@ class SolveResult:
     solution : PoseSumsCentre or PoseSumsAxis
         The estimate, covariances with the serial-correlation factor.
     serial : SerialInflation
-        The residual's lag-1 correlation and the factor applied.
+        The residual's lag-1 correlation, the frame interval and the factor applied.
     noise_std : tuple of float
         The marker noise (parent, child) used, input units.
     generation, version : int
@@ -683,8 +694,12 @@ def solve_window(request: SolveRequest) -> SolveResult:
     Ball: :func:`~jointfit_core.segments.centre_from_pose_sums`; hinge:
     :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` (Stoddart et al.,
     eqs. 10-13 and 19, on running sums). The factor is
-    :func:`~jointfit_core.serial.serial_factor` of the joint residual's lag-1
-    autocorrelation (see :class:`OnlineJoint`'s Notes).
+    :func:`~jointfit_core.serial.integrated_factor` of the joint residual's
+    autocorrelation at the frame interval and at lags in seconds (see
+    :class:`OnlineJoint`'s Notes); skin markers add the soft-tissue part,
+    scaled from the residual's smooth part
+    (:func:`~jointfit_core.serial.smooth_energy_from_lags`; hinge: also from
+    the axis-alignment residual, :func:`~jointfit_core.serial.rotation_residual_sums`).
     """
     sums, Wp_unit, Wc_unit, sigma_p, sigma_c = _unpack_pose_sums(request.sums)
     fixed_p, fixed_c = request.noise_std
@@ -700,23 +715,31 @@ def solve_window(request: SolveRequest) -> SolveResult:
         sol = axis_from_pose_sums(sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction)
         c_p, c_c = hinge_residual_pair(sums, sol.direction_parent, sol.direction_child, sol.point_parent, sol.point_child)
     lag = LagSums.from_vector(request.sums[_LAG : _LAG + 29])
+    tl = TimeLagSums.from_vector(request.sums[_TL])
+    nodes = lag_nodes(lag, tl)
+    lags = np.array([x for x, _ in nodes])
+    counts = np.array([node.n_pairs for _, node in nodes])
+    ss = residual_sum_squares_from_sums(sums, c_p, c_c)
+    lag_sums = np.array([residual_lag_sum_from_sums(node, c_p, c_c) for _, node in nodes])
     rho_raw = lag1_autocorrelation_from_sums(sums, lag, c_p, c_c)
-    rho, factor = serial_factor(rho_raw)
-    if not request.serial_correlation:
-        factor = 1.0
+    rho, _ = serial_factor(rho_raw)
+    dt = tl.frame_interval
+    factor = 1.0
+    if request.serial_correlation and lags.size and ss > 0.0:
+        factor = integrated_factor(lags, lag_sums / counts / (ss / float(sums.n)), dt, float(sums.n), counts)
     if factor != 1.0:
-        sol = _inflated(sol, factor, rho, scale)
-    serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs)
+        sol = _inflated(sol, factor, factor * dt, scale)
+    serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs, frame_interval_s=dt)
     if "skin" not in request.attachment:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
-    smooth = 0.0
-    if lag.n_pairs > 0:
-        # The lag-1 sum of white noise is 0 on average with sd at most RSS / sqrt(n) (a residual along one
-        # direction): three of those are not smooth (on skin markers the lag-1 sum is ~RSS, 0.95-0.998).
-        ss = residual_sum_squares_from_sums(sums, c_p, c_c)
-        lag_sum = residual_lag_sum_from_sums(lag, c_p, c_c) - 3.0 * ss / math.sqrt(lag.n_pairs)
-        smooth = max(lag_sum, 0.0) * float(sums.n) / lag.n_pairs
-    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth)
+    smooth, rotation_smooth = 0.0, 0.0
+    if lags.size:
+        smooth = smooth_energy_from_lags(lag_sums, counts, lags, ss, float(sums.n))
+        if isinstance(sol, PoseSumsAxis):
+            n_p, n_c = sol.direction_parent, sol.direction_child
+            rot = [rotation_residual_sums(sums, node, n_p, n_c) for _, node in nodes]
+            rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rot[0][0], float(sums.n))
+    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth)
     total = _with_artefact(sol, art.cov)
     return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
 
@@ -727,6 +750,7 @@ def _sums_artefact(
     sol: PoseSumsCentre | PoseSumsAxis,
     centres: tuple[FloatArray, FloatArray],
     smooth: float,
+    rotation_smooth: float = 0.0,
 ) -> SumsArtefact:
     """The soft-tissue covariance of a window's estimate (skin segments weighted equally)."""
     n = float(sums.n)
@@ -740,7 +764,10 @@ def _sums_artefact(
 
         def solver(x: FloatArray) -> FloatArray:
             return hinge_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:], ref)
-    return artefact_from_sums(request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth)
+    directions = None if isinstance(sol, PoseSumsCentre) else (sol.direction_parent, sol.direction_child)
+    return artefact_from_sums(
+        request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions, rotation_smooth
+    )
 
 
 def _with_artefact(sol: PoseSumsCentre | PoseSumsAxis, cov: FloatArray) -> PoseSumsCentre | PoseSumsAxis:
@@ -827,11 +854,11 @@ class OnlineJoint:
         instead of the residual estimate (None: estimate); needed with
         virtual markers, whose pose fits have no residual.
     serial_correlation : bool
-        Multiply the estimate's covariances by ``(1 + rho) / (1 - rho)``,
-        ``rho`` the lag-1 autocorrelation of the joint-constraint residual
-        over the window (default True; see Notes). False gives the
-        covariances of the closed forms on the window exactly; ``rho`` is
-        measured and reported (:attr:`serial_inflation`) either way.
+        Multiply the estimate's covariances by the integrated autocorrelation
+        of the joint-constraint residual over the window, read at lags in
+        seconds (default True; see Notes). False gives the covariances of the
+        closed forms on the window exactly; the lag-1 ``rho`` is measured and
+        reported (:attr:`serial_inflation`) either way.
     gate : float
         Outlier gate (default 5; 0 disables it): once the templates and a
         noise estimate exist, a segment whose markers, posed in its template
@@ -878,19 +905,29 @@ class OnlineJoint:
     **Serial correlation** (``serial_correlation=True``). Those covariances
     treat the frames as independent. Soft-tissue artefact moves markers
     smoothly, so the constraint residual ``r_k = c_p - Q_k c_c - t_k`` is
-    correlated from frame to frame (lag-1 autocorrelation 0.95-0.998 on skin
-    markers at 100 Hz) and N frames carry the information of about
-    ``N (1 - rho) / (1 + rho)`` independent ones. The window therefore also
-    keeps, per frame k, the products of its relative pose with that of frame
-    k-1 (:mod:`jointfit_core.serial`), from which
-    ``rho = (sum_pairs r_k . r_{k-1} / n_pairs) / (sum_frames |r_k|^2 / n)``
+    correlated in time (lag-1 autocorrelation 0.95-0.998 on skin markers at
+    100 Hz; the real hip's falls to 0.45 at 0.32 s and to 0 at 0.64 s) and
+    N frames carry the information of about ``N / F`` independent ones, ``F =
+    1 + 2 sum_l (1 - l dt / T) rho(l dt)`` the integrated autocorrelation
+    (Bartlett, ``T`` = :data:`~jointfit_core.serial.SERIAL_WINDOW_S`). The
+    window therefore also keeps, per frame k, the products of its relative
+    pose with that of frame k-1 and with those of the frames
+    :data:`~jointfit_core.serial.SERIAL_LAGS_S` seconds earlier
+    (:mod:`jointfit_core.serial`, :class:`~jointfit_core.serial.LagHistory`:
+    pairs found from the stamps, frames without stamps counted at
+    :data:`~jointfit_core.serial.NOMINAL_RATE_HZ`), from which
+    ``rho(lag) = (sum_pairs r_k . r_j / n_pairs) / (sum_frames |r_k|^2 / n)``
     at the estimate (ball: the centres; hinge: the solved axis-point pair,
-    :func:`~jointfit_core.serial.hinge_residual_pair`), clipped to
-    ``[0, RHO_MAX]``; every covariance of the estimate (ball: ``cov``,
-    ``cov_parent``, ``cov_child``; hinge: directions and points) is
-    multiplied by ``(1 + rho) / (1 - rho)``, as
-    :func:`~jointfit_core.model_error.residual_inflation` does for the batch
-    fits. Its ``chi2`` factor is not applied: the sandwich's middle is the
+    :func:`~jointfit_core.serial.hinge_residual_pair`), and every covariance
+    of the estimate (ball: ``cov``, ``cov_parent``, ``cov_child``; hinge:
+    directions and points) is multiplied by
+    :func:`~jointfit_core.serial.integrated_factor` of them (summed until the
+    correlation is noise). Reading the correlation in seconds makes ``N dt /
+    F``, the seconds per independent sample, the same at any frame rate; the
+    lag-1 AR(1) factor ``(1 + rho) / (1 - rho)`` that
+    :func:`~jointfit_core.model_error.residual_inflation` applies to the batch
+    fits is not (real hip: 2 effective frames at 100 Hz, 8 at 12.5 Hz; now
+    30 and 29). The batch fits' ``chi2`` factor is not applied: the sandwich's middle is the
     residual covariance predicted from the pooled pose-fit noise, which on
     skin markers already grows with the cluster deformation (right hip
     fixture: ``sum |r|^2 / ((N - 2) tr W) = 1.09``); artefact that moves a
@@ -908,7 +945,8 @@ class OnlineJoint:
     sums are the batch sums of its frames
     (:func:`~jointfit_core.segments.pose_sums_from_relative`) and of the
     pairs ending in them (:func:`~jointfit_core.serial.lag_sums_from_relative`
-    over the window and the frame before it).
+    over the window and the frame before it). The pairs at lags in seconds are
+    stored with their later frame in the same way.
 
     **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
     ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise
@@ -1035,6 +1073,8 @@ class OnlineJoint:
         self._x_buf = np.zeros((3, 4))  # [R_c | d_c - d_p]
         self._z_prev = np.zeros((3, 4))  # Z of the previous frame that entered the statistics
         self._prev_in = False  # whether the previous frame that reached _add entered the statistics
+        self._history = LagHistory()  # recent frames in the statistics, for the pairs at lags in seconds
+        self._tl_view = self._contribution[_TL]
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
         self._serial: SerialInflation | None = None
@@ -1382,7 +1422,7 @@ class OnlineJoint:
             before_in = np.empty(m, dtype=bool)
             before_in[0] = self._prev_in
             before_in[1:] = entered[:-1]
-            self._push_block(Y[rows], slots[rows], before_in[rows], st, rows)
+            self._push_block(Y[rows], slots[rows], before_in[rows], st, rows, numbers)
         self._prev_in = bool(entered[-1])
 
     def _gated_block(
@@ -1490,7 +1530,7 @@ class OnlineJoint:
                 if self._joint.residual is not None:
                     z = _relative_poses(R[pos], d[pos])
                     self._joint.passed(z, numbers[run], self._joint.scores_of(z, numbers[run]), False)
-                self._push_block(Y[run], slots[run], before_in, st, run, (R[pos], d[pos], ss[pos]))
+                self._push_block(Y[run], slots[run], before_in, st, run, numbers, (R[pos], d[pos], ss[pos]))
             if start < f:
                 self._prev_in = bool(entered[f - 1])
                 lo, hi = np.searchsorted(rows, (start, f))
@@ -1563,11 +1603,13 @@ class OnlineJoint:
         paired: NDArray[np.bool_],
         st: FloatArray | None,
         rows: NDArray[np.intp],
+        numbers: NDArray[np.int64],
         poses: tuple[FloatArray, FloatArray, FloatArray] | None = None,
     ) -> None:
         """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair sets of slots ``which``) and push them.
 
-        ``rows``: their indices in the block. ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
+        ``rows``: their indices in the block; ``numbers``: the block's frame numbers (the times of
+        frames without stamps). ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
         """
         m = Y.shape[0]
         if poses is None:
@@ -1587,6 +1629,9 @@ class OnlineJoint:
         z_prev = np.empty_like(z)
         z_prev[0] = self._z_prev
         z_prev[1:] = z[:-1]
+        times = stamps if stamps is not None else numbers[rows] / NOMINAL_RATE_HZ
+        lagged = np.empty((m, N_TIME_LAG_SUMS))
+        self._history.contributions(np.asarray(times, dtype=np.float64), z, lagged)
         table = self._pair_table()
         dof_sets, W_sets = table[5], table[6]
         if self._sums.spec.exponential:
@@ -1608,6 +1653,7 @@ class OnlineJoint:
             cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
             total[_LAG + 13 : _LAG + 29] = cross.ravel()
             total[_FS] = w @ feature_sums(z[:, :, :3], z[:, :, 3]) if self._skin else 0.0
+            total[_TL] = w @ lagged
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
             pr = np.flatnonzero(paired)
@@ -1623,6 +1669,7 @@ class OnlineJoint:
             c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
             if self._skin:
                 c[:, _FS] = feature_sums(z[:, :, :3], z[:, :, 3])
+            c[:, _TL] = lagged
             c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
             self._sums.push_many(c, stamps)
         self._version += 1
@@ -2043,6 +2090,7 @@ class OnlineJoint:
                 np.matmul(z.T, self._z_prev, out=self._cross_view)
             elif c[_LAG] != 0.0:
                 c[_LAG : _LAG + 29] = 0.0
+            self._history.contribution_one(stamp if stamp is not None else frame_no / NOMINAL_RATE_HZ, z, self._tl_view)
             if self._sums is None:
                 self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
             self._sums.push(c, stamp)
@@ -2093,6 +2141,16 @@ class OnlineJoint:
             No frame has entered the statistics yet.
         """
         return LagSums.from_vector(self._entered_sums()[_LAG : _LAG + 29])
+
+    def time_lag_sums(self) -> TimeLagSums:
+        """The window's lag-pair sums at lags in seconds (:class:`~jointfit_core.serial.TimeLagSums`).
+
+        Raises
+        ------
+        InputError
+            No frame has entered the statistics yet.
+        """
+        return TimeLagSums.from_vector(self._entered_sums()[_TL])
 
     def sums_vector(self) -> FloatArray | None:
         """A copy of the window's sums vector (the layout :meth:`request_for` takes); None before any frame entered."""
