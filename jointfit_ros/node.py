@@ -419,8 +419,8 @@ class JointfitNode(Node):
         stamp = self._now_ns()
         for name, runner in self.runners.items():
             sol = runner.estimator.solution
-            if sol is None or not sol.identifiable:
-                continue  # the local estimate of a joint that is not identifiable would mislead (no widening here)
+            if sol is None or not sol.identifiable or runner.sign_pending:
+                continue  # not identifiable (no widening here) or a sign convention not honoured yet: would mislead
             frame = runner.cfg.local_frame_id
             # CDR bytes, as the per-frame outputs: a message object costs ~0.1 ms more, on the frames' thread
             if isinstance(sol, PoseSumsAxis):

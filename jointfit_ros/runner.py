@@ -98,7 +98,7 @@ ABSURD_OUTPUT = 1e9
 #: The runner's counters (see :class:`JointRunner`).
 _COUNTERS = (
     "frames", "outputs", "malformed", "unmatched", "estimate_failures", "absurd_markers", "absurd_outputs",
-    "withheld_unidentified",
+    "withheld_unidentified", "withheld_unsigned",
 )
 
 
@@ -673,6 +673,9 @@ class JointRunner:
             return None
         if not self._sign_fixed and frame is not None:
             out = self._fix_sign(out, frame)
+            if not self._sign_fixed:  # a configured sign convention not honoured yet: no axis pointing either way
+                self.counters["withheld_unsigned"] += 1
+                return None
         sol = self.estimator.solution
         if sol is not None and not sol.identifiable:
             out = widened_output(out, max(self.estimator.length_scale, _lever(sol)))
@@ -682,6 +685,11 @@ class JointRunner:
             return None
         self.counters["outputs"] += 1
         return out
+
+    @property
+    def sign_pending(self) -> bool:
+        """A hinge sign convention is configured and not chosen yet (its axis outputs are withheld until it is)."""
+        return not self._sign_fixed
 
     def _publishable(self) -> bool:
         """Whether per-frame outputs go out: the estimate is identifiable, or ``publish_unidentified``."""
@@ -693,7 +701,10 @@ class JointRunner:
         if self.sign_text:
             return self.sign_text
         if self.cfg.axis_toward_marker:
-            return f"not chosen yet ({self._sign_words()} once identifiable, direction sd < {SIGN_SD_MAX_DEG:g} deg)"
+            return (
+                f"not chosen yet ({self._sign_words()} once identifiable, statistical direction sd < "
+                f"{SIGN_SD_MAX_DEG:g} deg; no axis output until then)"
+            )
         return "default: largest parent-frame component positive"
 
     def _sign_words(self) -> str:
@@ -704,16 +715,23 @@ class JointRunner:
     def _fix_sign(self, out: JointOutput, frame: FloatArray) -> JointOutput:
         """Point the hinge axis by the marker convention once, from an identified estimate; then keep that sign.
 
-        Until the estimate is identifiable with a direction sd below
+        Until the estimate is identifiable with a statistical direction sd below
         :data:`~jointfit_core.axis_sign.SIGN_SD_MAX_DEG`, nothing is chosen
         (an unconverged direction can be anything); a convention that
         cannot be honoured (:func:`~jointfit_core.axis_sign.hinge_sign`) is
-        reported in :attr:`sign_problem` and the default sign stays.
+        reported in :attr:`sign_problem` and the default sign stays. The
+        statistical part (skin markers: without the soft-tissue prior) is what
+        more movement reduces; the artefact part is a bias of a few degrees
+        that cannot flip a sign read from markers whose line runs at least
+        :data:`~jointfit_core.axis_sign.MIN_ALONG_RATIO` along the axis (the
+        real knee fixture: total 5.2 deg, statistical 0.9 deg).
         """
         sol = self.estimator.solution
         if not isinstance(sol, PoseSumsAxis) or out.direction is None or out.cov_direction is None:
             return out
-        if not sol.identifiable or not direction_sd_deg(sol.cov_direction_parent) < SIGN_SD_MAX_DEG:
+        stat = self.estimator.statistical_solution
+        cov = stat.cov_direction_parent if isinstance(stat, PoseSumsAxis) else sol.cov_direction_parent
+        if not sol.identifiable or not direction_sd_deg(cov) < SIGN_SD_MAX_DEG:
             return out
         names = (self.cfg.axis_toward_marker, self.cfg.axis_from_marker)
         choice = hinge_sign(
@@ -841,7 +859,7 @@ class JointRunner:
         if not self._sign_fixed:
             raise JointfitError(
                 f"the hinge sign ({self._sign_words()}) is not chosen yet: it waits for an identifiable estimate "
-                f"with a direction sd below {SIGN_SD_MAX_DEG:g} deg and a frame with the marker(s) visible"
+                f"with a statistical direction sd below {SIGN_SD_MAX_DEG:g} deg and a frame with the marker(s) visible"
             )
 
     def save(self) -> str:
@@ -907,6 +925,7 @@ class JointRunner:
             "unmatched inputs": self.counters["unmatched"],
             "estimate failures": self.counters["estimate_failures"],
             "outputs withheld (not identifiable)": self.counters["withheld_unidentified"],
+            "outputs withheld (hinge sign not chosen yet)": self.counters["withheld_unsigned"],
             "absurd markers (treated as missing)": self.counters["absurd_markers"],
             "outputs withheld (non-finite or beyond the workspace)": self.counters["absurd_outputs"],
         }

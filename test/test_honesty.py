@@ -98,6 +98,23 @@ def test_hinge_sign_after_a_still_stance_points_from_to(toward: str, frm: str, s
                for k, out in outs)
 
 
+def test_no_axis_output_until_the_sign_convention_is_honoured() -> None:
+    """The epicondyles hidden when the knee becomes identifiable: its axis is withheld (counted), not published
+    pointing either way, until a frame shows them; from then on every output points from MED toward LAT."""
+    cfg = node_config(_values(**{"knee.axis_toward_marker": "LAT", "knee.axis_from_marker": "MED"}))
+    runner = JointRunner(cfg.joints[0], cfg)
+    frames, times, _, _ = _stream("hinge", 12.0, seed=3)
+    hidden = frames.copy()
+    hidden[:800, 8:] = np.nan  # LAT and MED unseen for the first 8 s
+    outs = _run(runner, hidden, times)
+    assert runner.counters["withheld_unsigned"] > 100  # identifiable well before 8 s: withheld meanwhile
+    assert runner.status().values["outputs withheld (hinge sign not chosen yet)"] == runner.counters["withheld_unsigned"]
+    assert outs and min(k for k, _ in outs) >= 800
+    lat, med = NAMES.index("LAT"), NAMES.index("MED")
+    assert all(out.direction @ (frames[k, lat] - frames[k, med]) > 0.0 for k, out in outs)
+    assert runner.status().values["axis points"] == "from MED toward LAT"
+
+
 def test_one_marker_inside_the_clusters_is_ambiguous_and_said() -> None:
     cfg = node_config(_values(**{"knee.axis_toward_marker": "C0"}))
     runner = JointRunner(cfg.joints[0], cfg)
