@@ -71,7 +71,7 @@ SEG_NOISE_TR_MM = 1.7  # sqrt(tr W_y): per-coordinate sigma = 1.7 / sqrt(3)
 SEG_METHODS: tuple[tuple[str, dict[str, object]], ...] = (
     ("poses (weighted)", {"method": "poses", "weighted": True}),
     ("poses (unweighted)", {"method": "poses", "weighted": False}),
-    ("sphere", {"method": "sphere"}),
+    ("sphere", {"method": "sphere", "attachment": "rigid"}),  # (refuses skin markers: no soft-tissue term)
 )
 
 

@@ -37,7 +37,8 @@ def hip(data_dir: Path) -> None:
     thigh = data.select(["RTHI1", "RTHI2", "RTHI3"])
     R_world_pelvis, origin = pelvis_frame(*(pelvis[:, i] for i in range(4)))
     print(f"Right hip: {data.n_frames} frames at {data.rate:g} Hz ({data.units}), pelvis x4 + thigh x3 markers")
-    for method, weighted in (("poses", True), ("poses", False), ("sphere", True)):
+    # (method="sphere" has no soft-tissue term: it refuses skin markers rather than understate their error)
+    for method, weighted in (("poses", True), ("poses", False)):
         fit = fit_centre_two_segments(pelvis, thigh, method=method, weighted=weighted)
         centre_pelvis = np.nanmean(to_frame(fit.centre_world, R_world_pelvis, origin), axis=0)
         label = f"{method}{' (weighted)' if method == 'poses' and weighted else ''}"

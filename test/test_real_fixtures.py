@@ -30,7 +30,6 @@ def hip_fits() -> dict[str, tuple[np.ndarray, object]]:
     for name, kwargs in {
         "weighted": {"method": "poses", "weighted": True},
         "unweighted": {"method": "poses", "weighted": False},
-        "sphere": {"method": "sphere"},
     }.items():
         fit = fit_centre_two_segments(pelvis, thigh, **kwargs)  # type: ignore[arg-type]
         out[name] = (np.nanmean(to_frame(fit.centre_world, R_world_pelvis, origin), axis=0), fit)

@@ -459,6 +459,16 @@ def test_hinge_sign_convention() -> None:
         fit_axis_two_segments(rig.parent, rig.child, reference_direction=[1.0, 0.0])
 
 
+def test_sphere_method_refuses_skin_markers() -> None:
+    """method="sphere" has no soft-tissue term: on skin markers it would publish the white noise's sd."""
+    rig = _rig(np.random.default_rng(14), 300)
+    with pytest.raises(InputError, match="no soft-tissue term"):
+        fit_centre_two_segments(rig.parent, rig.child, method="sphere", attachment="skin")  # the library's default
+    with pytest.raises(InputError, match="no soft-tissue term"):
+        fit_centre_two_segments(rig.parent, rig.child, method="sphere", attachment=("rigid", "skin"))
+    assert fit_centre_two_segments(rig.parent, rig.child, method="sphere", attachment="rigid").method == "sphere"
+
+
 # --------------------------------------------------------------------------- motion that cannot identify the joint
 
 
