@@ -44,7 +44,6 @@ __all__ = [
     "ANATOMICAL_GROUPS",
     "SEGMENT_PARAMS",
     "SegmentConfig",
-    "segment_param_names",
 ]
 
 
@@ -516,6 +515,8 @@ ANATOMICAL_GROUPS: dict[str, tuple[str, ...]] = {
 RUNTIME_PARAMS = frozenset(p.name for p in NODE_PARAMS if p.runtime)
 
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+#: The node parameters' names: a joint or a segment may not take one (their keys would clash in a parameter file).
+_NODE_NAMES = frozenset(p.name for p in NODE_PARAMS)
 
 
 @dataclass(frozen=True)
@@ -631,11 +632,6 @@ def joint_param_names(joint: str) -> list[str]:
     return [f"{joint}.{p.name}" for p in JOINT_PARAMS]
 
 
-def segment_param_names(segment: str) -> list[str]:
-    """Full names of a segment's parameters (``<segment>.<name>``)."""
-    return [f"{segment}.{p.name}" for p in SEGMENT_PARAMS]
-
-
 def check_value(spec: ParamSpec, value: Any, full_name: str | None = None) -> Any:
     """Check one value against its spec and return it in its Python type.
 
@@ -732,11 +728,7 @@ def _joint_config(
                 f"{name}.{side}_markers: expected at least 3 marker names (with {name}.{side}_chain joints; or "
                 f"{name}.{side}_pose_topic), got {markers!r}" + _minimal_hint(v, name)
             )
-        unknown = [m for m in markers if m not in known]
-        if unknown:
-            raise ConfigError(f"{name}.{side}_markers: {unknown} are not in marker_names {list(marker_names)}")
-        if len(set(markers)) != len(markers):
-            raise ConfigError(f"{name}.{side}_markers: a marker is listed twice: {markers!r}")
+        _check_marker_list(f"{name}.{side}_markers", markers, marker_names)
     shared = set(v["parent_markers"]) & set(v["child_markers"])
     if shared:
         raise ConfigError(f"{name}: markers {sorted(shared)} are on both the parent and the child")
@@ -834,6 +826,15 @@ def calibration_path(text: str) -> Path:
     return Path(expanded)
 
 
+def _check_marker_list(key: str, markers: Sequence[str], marker_names: Sequence[str]) -> None:
+    """A joint side's or a segment's markers (parameter ``key``): names from marker_names, each once."""
+    unknown = [m for m in markers if m not in marker_names]
+    if unknown:
+        raise ConfigError(f"{key}: {unknown} are not in marker_names {list(marker_names)}")
+    if len(set(markers)) != len(markers):
+        raise ConfigError(f"{key}: a marker is listed twice: {list(markers)!r}")
+
+
 def _segment_configs(
     values: Mapping[str, Any], segments: Sequence[str], marker_names: Sequence[str]
 ) -> dict[str, SegmentConfig]:
@@ -848,11 +849,7 @@ def _segment_configs(
                 f"{name}: give {name}.markers (names from marker_names) or {name}.pose_topic, "
                 + ("not both" if markers else "got neither")
             )
-        unknown = [m for m in markers if m not in marker_names]
-        if unknown:
-            raise ConfigError(f"{name}.markers: {unknown} are not in marker_names {list(marker_names)}")
-        if len(set(markers)) != len(markers):
-            raise ConfigError(f"{name}.markers: a marker is listed twice: {markers!r}")
+        _check_marker_list(f"{name}.markers", markers, marker_names)
         for m in markers:
             if m in owner:
                 raise ConfigError(f"{name}.markers: {m!r} is also on segment {owner[m]!r}; a marker is on one segment")
@@ -863,13 +860,12 @@ def _segment_configs(
 
 def _check_segment_names(segments: Sequence[str], joints: Sequence[str]) -> None:
     """Segment names: valid, each once, none a joint's or a node parameter's (their keys would share a prefix)."""
-    node_names = {s.name for s in NODE_PARAMS}
     for name in segments:
         if not _NAME.match(name):
             raise ConfigError(f"segments: {name!r} is not a valid name (letters, digits and _; starting with a letter)")
         if name in joints:
             raise ConfigError(f"segments: {name!r} is also a joint's name; a segment needs a name of its own")
-        if name in node_names:
+        if name in _NODE_NAMES:
             raise ConfigError(f"segments: {name!r} is the name of a node parameter; give the segment another name")
     if len(set(segments)) != len(segments):
         raise ConfigError(f"segments: a name is listed twice: {list(segments)!r}")
@@ -969,11 +965,10 @@ def node_config(values: Mapping[str, Any]) -> NodeConfig:
     joints = v["joints"]
     if not joints:
         raise ConfigError("joints: expected at least one joint name, got none")
-    node_names = {s.name for s in NODE_PARAMS}
     for j in joints:
         if not _NAME.match(j):
             raise ConfigError(f"joints: {j!r} is not a valid name (letters, digits and _; starting with a letter)")
-        if j in node_names:  # `units: m` and `units: {type: ball}` cannot both be in a parameter file
+        if j in _NODE_NAMES:  # `units: m` and `units: {type: ball}` cannot both be in a parameter file
             raise ConfigError(f"joints: {j!r} is the name of a node parameter; give the joint another name")
     if len(set(joints)) != len(joints):
         raise ConfigError(f"joints: a name is listed twice: {joints!r}")
