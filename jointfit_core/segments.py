@@ -1107,7 +1107,7 @@ def fit_centre_two_segments(
             "for a centre 10-20 mm from the other methods); use method='poses' (the default), or "
             "attachment='rigid' for markers on rigid bodies"
         )
-    skin = "skin" in att and method == "poses"
+    skin = "skin" in att  # (method "sphere" took rigid markers only, above)
     prep = _prepare(parent, child, "ball", white=skin)
     used = prep.both
     Q, t = prep.Q[used], prep.t[used]

@@ -55,6 +55,8 @@ class NodeCalibrationFile:
         Said once at start: stale temporaries removed, joints of the file this node does not have.
     problem : str
         Why the file as a whole was not loaded (empty when it was, or does not exist).
+    unsaved : list of str
+        The joints the last :meth:`save` was asked for and could not write (their previous entries kept).
     """
 
     def __init__(self, path: str, runners: Sequence[JointRunner], node: str, units: str) -> None:
@@ -64,6 +66,7 @@ class NodeCalibrationFile:
         self.units = units
         self.notes: list[str] = []
         self.problem = ""
+        self.unsaved: list[str] = []
         #: Per joint, its entry's calibration as last loaded or saved (written again while it has no estimate).
         self._entries: dict[str, dict[str, Any]] = {}
         self._aside = False  # the file on disk holds what was not loaded: copy it aside before replacing it
@@ -174,6 +177,7 @@ class NodeCalibrationFile:
         self._aside = False
         for runner in self.runners:
             runner.saved_unloadable()
+        self.unsaved = [r.cfg.name for r in chosen if r.cfg.name not in fresh]
         self._entries.update(fresh)
         for name in fresh:
             texts[name] = f"{name}: saved {path}{kept}"

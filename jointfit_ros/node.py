@@ -637,7 +637,7 @@ class JointfitNode(Node):
         if self.calibration_file is not None:
             try:
                 results = self.calibration_file.save()
-                response.success = not any(": not saved:" in r for r in results)
+                response.success = not self.calibration_file.unsaved
             except (JointfitError, OSError) as exc:
                 results = [f"not saved: {exc}"]
                 response.success = False

@@ -295,6 +295,7 @@ def test_a_joint_that_cannot_save_keeps_its_entry(calibrated: dict[str, Any], tm
     by["r_ankle"].reset()  # no estimate now: ~/save says so and writes its previous entry again
     texts = store.save()
     assert any(t.startswith("r_ankle: not saved:") and "previous entry is kept" in t for t in texts), texts
+    assert store.unsaved == ["r_ankle"]  # what ~/save answers success false for
     saved = load_node_calibration(path)
     assert saved["joints"]["r_ankle"] == calibrated["doc"]["joints"]["r_ankle"]  # carried over as it was
     _assert_same(saved, calibrated["doc"])
@@ -302,6 +303,7 @@ def test_a_joint_that_cannot_save_keeps_its_entry(calibrated: dict[str, Any], tm
     by["r_knee"].reset()
     assert by["r_hip"].saver is not None
     assert by["r_hip"].saver() == str(path)  # as a per-joint save says it: "auto_freeze: frozen, saved <path>"
+    assert store.unsaved == []
     again = load_node_calibration(path)
     assert {n: j["calibration"] for n, j in again["joints"].items() if n != "r_hip"} == {
         n: j["calibration"] for n, j in saved["joints"].items() if n != "r_hip"
