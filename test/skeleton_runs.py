@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from helpers import mahalanobis
 from numpy.typing import NDArray
 
 from jointfit_core.skeleton_truth import Skeleton
@@ -54,13 +55,6 @@ def run_stream(
                 r.estimate(force=True)
     assert router.counters["malformed"] == 0
     return runners
-
-
-def _index(err: NDArray[np.float64], cov: NDArray[np.float64]) -> float:
-    """``err^T cov^+ err / rank`` (as helpers.mahalanobis)."""
-    pinv = np.linalg.pinv(cov, rcond=1e-10, hermitian=True)
-    rank = int(np.linalg.matrix_rank(cov, tol=1e-10 * np.abs(np.linalg.eigvalsh(cov)).max(), hermitian=True))
-    return float(err @ pinv @ err) / rank
 
 
 @dataclass(frozen=True)
@@ -115,7 +109,7 @@ def score(sk: Skeleton, runner: JointRunner) -> JointScore:
     if direction is None:
         err = sol.centre_parent - point
         return JointScore(runner.cfg.name, "ball", 1e3 * float(np.linalg.norm(err)), 1e3 * float(np.sqrt(np.trace(sol.cov_parent))),
-                          _index(err, sol.cov_parent), nan, nan, nan, nan, bool(sol.identifiable), gated)  # fmt: skip
+                          mahalanobis(err, sol.cov_parent), nan, nan, nan, nan, bool(sol.identifiable), gated)  # fmt: skip
     d = sol.direction_parent * np.sign(sol.direction_parent @ direction)
     off = point - sol.point_parent
     off_perp = off - (off @ d) * d
@@ -124,8 +118,8 @@ def score(sk: Skeleton, runner: JointRunner) -> JointScore:
     perp = basis.T @ off_perp
     return JointScore(
         runner.cfg.name, "hinge", float(np.degrees(np.arccos(min(1.0, float(d @ direction))))),
-        float(np.degrees(np.sqrt(np.trace(sol.cov_direction_parent)))), _index(d - direction, sol.cov_direction_parent),
+        float(np.degrees(np.sqrt(np.trace(sol.cov_direction_parent)))), mahalanobis(d - direction, sol.cov_direction_parent),
         1e3 * float(np.linalg.norm(off_perp)), 1e3 * float(np.sqrt(np.trace(cov_perp))),
-        float(perp @ np.linalg.solve(cov_perp, perp)) / 2.0, _index(sol.point_parent - point, sol.cov_point_parent),
+        float(perp @ np.linalg.solve(cov_perp, perp)) / 2.0, mahalanobis(sol.point_parent - point, sol.cov_point_parent),
         bool(sol.identifiable), gated,
     )  # fmt: skip
