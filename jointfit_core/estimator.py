@@ -91,6 +91,12 @@ TEMPLATE_DEV_FACTOR = 5.0
 #: (noise-free or rounding-level data would otherwise fail it in every frame).
 GATE_SIGMA_FLOOR = 1e-6
 
+#: Outlier gate: its limits (residual level and normal jump of each segment) are read again every this
+#: many frames, and with every estimate: a skin cluster's deformation grows and shrinks with the joint
+#: angles, and without estimates (a whole recording in one block, the node's first seconds) limits
+#: frozen at the template frames' noise would hold a deforming cluster's markers out for good.
+GATE_REFRESH_FRAMES = 50
+
 #: Outlier gate: the largest turn (deg) of a segment between the last frame in the statistics and
 #: the current one. A label swap in a nearly symmetric cluster (two markers about equidistant from
 #: the others) fits within the noise turned over by ~180 deg; so does a symmetric subset left after
@@ -864,8 +870,9 @@ class OnlineJoint:
         noise estimate exist, a segment whose markers, posed in its template
         frame, jump from its last passed frame by more than ``gate`` times
         its normal jump (:mod:`jointfit_core.gate`; or that fails the
-        residual test, rms residual above ``gate`` times its noise estimate,
-        while moving more than usual) loses its worst-fitting marker and is
+        residual test, rms residual above ``gate`` times its noise estimate
+        or its recent normal residual, whichever is larger, while moving more
+        than usual; both read again every :data:`GATE_REFRESH_FRAMES` frames) loses its worst-fitting marker and is
         fitted again, down to 3 markers; if it still fails, the segment is
         not posed in that frame. Swapped labels, ghost markers and jumps are
         dropped before they reach the statistics or the per-frame output;
@@ -1091,7 +1098,7 @@ class OnlineJoint:
         self._ref_frame = [0, 0]
         self._held = [0, 0]
         self._arrivals = 0
-        self._gate_key: tuple[float, bool, tuple[float, float], int] | None = None
+        self._gate_key: tuple[float, int, int] | None = None
         self._gate_cache: FloatArray | None = None
         self._jump_limit = np.full(2, np.inf)
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
@@ -1328,8 +1335,16 @@ class OnlineJoint:
         while k < n and not self.templates_ready:
             self.update(yp[k], yc[k], None if st is None else float(st[k]))
             k += 1
-        if k < n:
-            self._update_block(yp[k:], yc[k:], None if st is None else st[k:])
+        # the gate's limits are refreshed every GATE_REFRESH_FRAMES frames (see _gate_var): blocks are cut there
+        # so that each part is judged with the limits its frames one by one would meet
+        cuts = [k]
+        if self.gate > 0.0:
+            first = self._arrivals + 1  # the number of frame k
+            cuts += range(k + ((-first) % GATE_REFRESH_FRAMES or GATE_REFRESH_FRAMES), n, GATE_REFRESH_FRAMES)
+        cuts.append(n)
+        for lo, hi in itertools.pairwise(cuts):
+            if lo < hi:
+                self._update_block(yp[lo:hi], yc[lo:hi], None if st is None else st[lo:hi])
 
     def _check_block(
         self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None
@@ -1752,32 +1767,52 @@ class OnlineJoint:
     def _gate_var(self) -> FloatArray | None:
         """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
 
-        From the latest estimate's noise, or before the first one from the noise seen while
-        building the templates; None while the gate is off or neither exists (fixed templates
-        before an estimate). Sets ``_jump_limit`` (2,) with it: ``gate^2`` times each segment's
-        normal jump (:class:`~jointfit_core.gate.ShapeTrack`). Cached: both change only with an
-        estimate (per-frame cost; the update and block paths then judge alike).
+        ``sigma``: :meth:`_gate_sigma`. None while the gate is off or there is no noise level
+        (fixed templates before any frame entered the statistics). Sets ``_jump_limit`` (2,)
+        with it: ``gate^2`` times each segment's normal jump
+        (:class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again with each
+        estimate and every :data:`GATE_REFRESH_FRAMES` frames (per-frame cost; the update
+        and block paths then judge alike, :meth:`_update_many` cutting its blocks there).
         """
-        sigma = self._sigma
-        if self._solution is None and self.templates_ready:
-            # before the first estimate: the noise seen while building the templates
-            assert self._parent is not None and self._child is not None
-            sigma = (self._parent.template_sigma, self._child.template_sigma)
-        key = (self.gate, self._solution is None, sigma, self._solved_version)
+        key = (self.gate, self._solved_version, self._arrivals // GATE_REFRESH_FRAMES)
         if key != self._gate_key:
             self._gate_key = key
+            sigma = self._gate_sigma()
             if self.gate <= 0.0 or min(sigma) <= 0.0:
                 self._gate_cache = None
             else:
+                assert self._parent is not None and self._child is not None
                 # noise-free data: sigmas of rounding would gate every frame
                 floor = GATE_SIGMA_FLOOR * self.length_scale
-                s = np.maximum(np.asarray(sigma), floor)
+                s = np.maximum(sigma, floor)
                 self._gate_cache = np.square(self.gate * s)
-                assert self._parent is not None and self._child is not None
                 self._jump_limit = self.gate**2 * np.array(
                     [self._parent.shape.normal_jump(float(s[0]), floor), self._child.shape.normal_jump(float(s[1]), floor)]
                 )
         return self._gate_cache
+
+    def _gate_sigma(self) -> FloatArray:
+        """Per segment (2,), the residual level the gate's residual test holds (input units).
+
+        The window's pooled pose-fit residual ``sqrt(sum SS / sum dof)`` (what an estimate
+        reports as ``noise_std``: white noise, plus on skin markers the cluster's deformation),
+        read from the sums whether or not anything was solved; before a segment has any: the
+        latest estimate's noise (a calibration loaded), else the noise seen while building the
+        templates. A fixed ``noise_std`` is used as given.
+        """
+        assert self._parent is not None and self._child is not None
+        if self._solution is not None:
+            sigma = np.array(self._sigma, dtype=np.float64)
+        else:
+            sigma = np.array([self._parent.template_sigma, self._child.template_sigma])
+        if self._sums is not None:
+            ss, dof = self._sums.sums[_SS : _SS + 4 : 2], self._sums.sums[_SS + 1 : _SS + 4 : 2]
+            pooled = dof > 0.0
+            sigma[pooled] = np.sqrt(np.maximum(ss[pooled], 0.0) / dof[pooled])
+        for k, fixed in enumerate(self._noise_arg):
+            if fixed is not None:
+                sigma[k] = fixed
+        return sigma
 
     def _jump_limits(self, k: int) -> tuple[float, float]:
         """Segment ``k``'s jump limits (input units squared): ``gate^2`` and :data:`~jointfit_core.gate.GATE_JUMP_LOW` times its normal jump."""

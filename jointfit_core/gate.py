@@ -27,10 +27,14 @@ previous frames, not with the template:
 * a frame fails when its jump exceeds ``gate^2`` times the normal jump.
 
 Without a reference (fewer than 3 visible markers with one: the first frame
-after the templates, after a reset) the residual test against the white
-noise decides, as it did before this module, and a failing frame becomes a
-provisional reference until one passes (so a ghost in that frame cannot lock
-the segment out).
+after the templates, after a reset) the residual test decides, as it did
+before this module, and a failing frame becomes a provisional reference until
+one passes (so a ghost in that frame cannot lock the segment out). Its level
+is the window's pooled pose-fit residual (on skin markers: the noise plus the
+cluster's deformation), read again every
+:data:`~jointfit_core.estimator.GATE_REFRESH_FRAMES` frames, so that a marker
+back from an occlusion, with no recent reference, is judged against the
+deformation the cluster normally shows, not the template frames' noise.
 
 Templates (:func:`consistent_frames`): frames are split at sudden changes of
 their inter-marker distances (above :data:`~jointfit_core.estimator.TEMPLATE_DEV_FACTOR`
@@ -160,7 +164,7 @@ def gate_fails(jump: Any, stale: Any, residual_bad: Any, limit: float, low: floa
     jump, stale
         :func:`frame_jumps` against the references (the frames that passed).
     residual_bad
-        The residual test against the white noise failed.
+        The residual test (against the segment's pooled residual level) failed.
     limit : float
         ``gate^2`` times the normal jump.
     low : float

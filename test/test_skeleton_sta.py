@@ -128,7 +128,6 @@ def _lower_body_scores(seed: int) -> dict[str, list[JointScore]]:
     sk = make_skeleton("lower", seed=seed)
     t = np.arange(round(SECONDS * RATE)) / RATE
     # 2 % of the markers occluded; solved every 0.1 s of the stream as the node does (its estimate_period):
-    # without solves an occlusion can lock a marker out of the gate (the xfail below).
     frames = skeleton_skin_frames(sk, t, np.random.default_rng(seed), sta_amplitudes(sk), noise=0.0005, occlusion=0.02)
     out = {}
     for attachment in ("skin", "rigid"):
@@ -203,28 +202,20 @@ def _occluded_stream(seed: int, estimate_period: float | None) -> dict[str, floa
 def test_an_occlusion_does_not_lock_a_skin_marker_out_of_the_node() -> None:
     """Solved every 0.1 s as the node does, a marker missing now and then on a deforming skin cluster comes back.
 
-    (Seed 2 without solves gates 36-65 % of the frames: the xfail below.) The gate's residual
-    test then holds the window's pooled residual (deformation included), not the white noise
-    of the template frames."""
+    The gate's residual test then holds the larger of the window's pooled residual and the
+    segment's recent fits' residual (deformation included in both)."""
     gated = _occluded_stream(2, 0.1)
     assert max(gated.values()) < 0.05, gated
 
 
-@pytest.mark.xfail(strict=True, reason="known defect: without estimates the gate locks a skin marker out after an occlusion")
 def test_an_occlusion_does_not_lock_a_skin_marker_out() -> None:
     """A marker missing in one frame of a deforming skin cluster comes back, even when nothing is solved meanwhile.
 
-    Today it does not (``OnlineJoint.update_many`` over a whole recording, the node before its
-    first estimate): until an estimate the gate's residual test holds the white noise of the
-    template frames, which a deforming cluster always exceeds. In the first 4-marker frame after a
-    3-marker frame the thigh's references
-    come from two different fits (3 markers, 4 markers), whose template-frame positions differ by
-    how each fit spreads the deformation; the aligned jump exceeds the low limit and, as the
-    deforming 4-marker cluster always fails the residual test against the white noise, the gate
-    leaves a marker out; from then on that marker's reference is stale within 10 frames and
-    ``stale and residual_bad`` fails every frame with it (skeleton seed 2, 50 Hz, 10 s: 36-65 % of
-    the frames gated, r_knee 6 -> 28 deg). Passing (strict xfail fails) means it was fixed: then
-    drop the xfail.
+    (``OnlineJoint.update_many`` over a whole recording, the node before its first estimate.) Until
+    the gate's residual level was read from the segment's recent fits (``GATE_REFRESH_FRAMES``), it
+    held the template frames' white noise until the first estimate, which a deforming cluster
+    always exceeds: a marker held out once had no recent reference, and ``stale and residual_bad``
+    then failed every frame with it (seed 2: 36-65 % of the frames gated, r_knee 6 -> 28 deg).
     """
     gated = _occluded_stream(2, None)
     assert max(gated.values()) < 0.05, gated

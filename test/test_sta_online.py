@@ -53,9 +53,10 @@ def test_skin_hip_online_covariance_covers_the_artefact() -> None:
     skin = [_hip_trial(s, 10.0, "skin") for s in seeds]
     rigid = [_hip_trial(s, 10.0, "rigid")[0] for s in seeds]
     e_skin = float(np.mean([e for e, _, _ in skin]))
-    # 4 trials: e/3 of an honest covariance has mean 1 and a wide spread; the rigid one is ~10-20.
+    # 4 trials: e/3 of an honest covariance has mean 1 and a wide spread; the rigid one is 1.3-8 here (mean 4.5).
     assert 0.25 < e_skin < 3.0, e_skin
-    assert float(np.mean(rigid)) > 5.0, rigid
+    # honest, the mean of 4 e/3 is chi2(12) / 12, above 3 with probability 3e-4
+    assert float(np.mean(rigid)) > 3.0, rigid
     for _, est, err in skin:
         stat = est.statistical_solution
         assert stat is not None and est.attachment == ("skin", "skin")
