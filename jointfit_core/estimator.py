@@ -36,14 +36,21 @@ from .artefact_sums import (
 from .calibration import fit_from_dict, fit_to_dict
 from .checks import as_real_array, check_frame, check_vector3
 from .errors import InputError
-from .gate import GATE_JUMP_LOW, BlockJumps, ShapeTrack, consistent_frames, gate_fails, marker_code
+from .gate import BlockJumps
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .joint_gate import JointTrack
-from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local, skew
+from .pose import MIN_POSE_MARKERS, skew
 from .quaternion_fit import HORN_A, HORN_B, rotations_from_correlations
+from .segment_tracker import (
+    COS_MAX_TURN,
+    GATE_TURN_GAP_FRAMES,
+    SegmentTracker,
+    VisibleSet,
+    cos_turn,
+    shape_ok,
+)
 from .segments import (
     AXIS_SD_MAX_DEG,
-    POSE_VAR_RATIO_MAX,
     SD_REL_MAX,
     PoseSums,
     PoseSumsCentre,
@@ -82,11 +89,6 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 #: ``format`` and ``version`` keys of a saved calibration (:meth:`OnlineJoint.to_dict`).
-#: Template building: a candidate frame is discarded when its inter-marker distances changed from the
-#: frame before by more than this many times the usual (90th percentile) change, and did not come
-#: back (:func:`~jointfit_core.gate.consistent_frames`).
-TEMPLATE_DEV_FACTOR = 5.0
-
 #: Outlier gate: the noise sigma it assumes is at least this fraction of the templates' rms radius
 #: (noise-free or rounding-level data would otherwise fail it in every frame).
 GATE_SIGMA_FLOOR = 1e-6
@@ -96,21 +98,6 @@ GATE_SIGMA_FLOOR = 1e-6
 #: angles, and without estimates (a whole recording in one block, the node's first seconds) limits
 #: frozen at the template frames' noise would hold a deforming cluster's markers out for good.
 GATE_REFRESH_FRAMES = 50
-
-#: Outlier gate: the largest turn (deg) of a segment between the last frame in the statistics and
-#: the current one. A label swap in a nearly symmetric cluster (two markers about equidistant from
-#: the others) fits within the noise turned over by ~180 deg; so does a symmetric subset left after
-#: a swap. 30 deg per frame is 3000 deg/s at 100 Hz: far beyond any limb.
-GATE_MAX_TURN_DEG = 30.0
-
-#: Outlier gate: the turn test applies while its reference is at most this many frames old (frames
-#: that arrived, including those dropped for their stamp): after a longer gap (occlusion) the
-#: segment may really have turned, and the test starts afresh.
-GATE_TURN_GAP_FRAMES = 10
-
-#: Outlier gate: after this many frames in a row held out by the turn test, the test starts afresh
-#: (the reference itself may be the wrong one). Swaps that last longer get into the statistics.
-GATE_RELOCK_FRAMES = 500
 
 CALIBRATION_FORMAT = "jointfit-calibration"
 CALIBRATION_VERSION = 1
@@ -193,30 +180,11 @@ class JointOutput:
 # --------------------------------------------------------------------------- per-frame poses
 
 
-def _kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Least-squares pose ``y ~ R x + d`` of fully visible points (template building only)."""
-    xb = x.mean(axis=0)
-    yb = y.mean(axis=0)
-    U, _, Vt = np.linalg.svd((x - xb).T @ (y - yb))
-    R = Vt.T @ U.T
-    if np.linalg.det(R) < 0.0:
-        Vt[2] = -Vt[2]
-        R = Vt.T @ U.T
-    return R, yb - R @ xb
-
-
-_COS_MAX_TURN = float(np.cos(np.deg2rad(GATE_MAX_TURN_DEG)))
 #: Batched turn tests flag a frame as a candidate this much above the threshold: the batched poses
 #: (:func:`_poses_many`) and the cosine differ from the per-frame ones by rounding.
 _COS_MARGIN = 1e-9
 #: Batched residual tests flag a frame as a candidate this fraction below the gate (rounding).
 _SS_MARGIN = 1e-6
-
-
-def _cos_turn(R: FloatArray, Q: FloatArray) -> FloatArray:
-    """Cosine of the angle between rotations ``R`` and ``Q`` (..., 3, 3): ``(tr(R Q^T) - 1) / 2``, shape (...)."""
-    return (np.einsum("...ij,...ij->...", R, Q) - 1.0) / 2.0
-
 
 
 try:  # the gufunc behind np.linalg.eigh, without its Python-level checks (~3 us per call here)
@@ -228,25 +196,11 @@ except (ImportError, AttributeError):  # pragma: no cover - other numpy versions
 
 
 @dataclass(frozen=True, eq=False)
-class _VisibleSet:
-    """Template-side quantities of one set of visible markers (cached per visibility pattern)."""
-
-    index: NDArray[np.intp]  # visible markers
-    n: float
-    xbar: FloatArray  # (3,) centroid of the visible template points
-    xc: FloatArray  # (P, 3) centred visible template points, zero rows where not visible
-    xx: float  # sum |xc|^2
-    W_unit: FloatArray  # (6, 6) local pose covariance at unit noise
-    dof: float  # 3 n - 6
-    code: int = 0  # the visible markers as a bit mask (the outlier gate's shape references)
-
-
-@dataclass(frozen=True, eq=False)
 class _PairSet:
     """Both segments' visible sets of one frame, stacked for the batched pose fit (cached)."""
 
-    parent: _VisibleSet | None
-    child: _VisibleSet | None
+    parent: VisibleSet | None
+    child: VisibleSet | None
     xc_t: FloatArray  # (2, 3, Pmax) centred template points, zero columns for missing or padding
     wn: FloatArray  # (2, Pmax) visible / n
     n: FloatArray  # (2,)
@@ -257,7 +211,7 @@ class _PairSet:
     slot: int  # its row in the estimator's stacked table of pair sets (OnlineJoint._pair_table)
 
 
-def _pair_set(parent: _VisibleSet | None, child: _VisibleSet | None, p_max: int, slot: int) -> _PairSet:
+def _pair_set(parent: VisibleSet | None, child: VisibleSet | None, p_max: int, slot: int) -> _PairSet:
     xc = np.zeros((2, p_max, 3))
     wn = np.zeros((2, p_max))
     n = np.ones(2)
@@ -354,118 +308,6 @@ def _poses_many(
     d = ybar - np.einsum("kij,kj->ki", R, xbar)
     ss = np.maximum(yy + xx - 2.0 * lam, 0.0)
     return R, d, ss
-
-
-class _Segment:
-    """Template building and per-visibility caches of one segment."""
-
-    def __init__(self, name: str, n_markers: int, template_frames: int) -> None:
-        self.name = name
-        self.n_markers = n_markers
-        self.template_frames = template_frames
-        self.template: FloatArray | None = None
-        self.template_sigma = 0.0  # marker noise seen in the template frames (input units)
-        self._frames: list[FloatArray] = []  # centred, fully visible candidate frames
-        self._seen = 0
-        self._cache: dict[bytes, _VisibleSet | None] = {}
-        self._full_rot = 0.0
-        self.rms_radius = 0.0  # of the template (input units; 0 until it exists)
-        self.min_spacing = 0.0  # least distance between two template points (input units)
-        self.shape = ShapeTrack(n_markers)  # the outlier gate's shape references and recent jumps
-        self.gated_frames = 0  # frames in which the segment failed the outlier gate
-
-    @property
-    def template_progress(self) -> int:
-        return len(self._frames)
-
-    def add_template_frame(self, y: FloatArray) -> None:
-        """Use a fully visible frame for the template (consistent frames aligned and averaged).
-
-        Once ``template_frames`` candidates are collected, frames whose
-        inter-marker distances (rigid invariants) change suddenly, by more
-        than :data:`TEMPLATE_DEV_FACTOR` times the usual (90th percentile)
-        change from one candidate to the next, and do not come back
-        (:func:`~jointfit_core.gate.consistent_frames`), are discarded (a
-        label swap or a ghost during the first frames would otherwise be
-        built into the template) and collection goes on; after ``4 *
-        template_frames`` candidates the consistent ones are used whatever
-        their number. Distances that drift smoothly (a skin cluster
-        deforming as the joint flexes) are consistent. The template is their
-        average, each aligned (Kabsch) to the first consistent frame; the
-        aligned frames' changes from one to the next seed the gate's normal
-        jump (:class:`~jointfit_core.gate.ShapeTrack`).
-        """
-        if self.template is not None or np.isnan(y).any():
-            return
-        x = y - y.mean(axis=0)
-        if not _shape_ok(x):
-            return
-        self._frames.append(x)
-        self._seen += 1
-        if len(self._frames) < self.template_frames:
-            return
-        X = np.stack(self._frames)
-        D = np.linalg.norm(X[:, :, None, :] - X[:, None, :, :], axis=3)
-        keep = consistent_frames(D, TEMPLATE_DEV_FACTOR)
-        if keep.all() or self._seen >= 4 * self.template_frames:
-            kept = X[keep]
-            x0 = kept[0]
-            aligned = np.stack([x0] + [(x - d) @ R for x in kept[1:] for R, d in [_kabsch(x, x0)]])
-            mean = aligned.mean(axis=0)
-            dof = max(aligned.shape[0] * (3 * aligned.shape[1] - 6) - (3 * aligned.shape[1] - 6), 1)
-            self.template_sigma = float(np.sqrt(np.sum((aligned - mean) ** 2) / dof))
-            self._frames = []
-            self.set_template(mean)
-            steps = np.sum(np.diff(aligned, axis=0) ** 2, axis=2).max(axis=1, initial=0.0)
-            self.shape = ShapeTrack(self.n_markers, steps.tolist())
-        else:
-            self._frames = [x for x, k in zip(self._frames, keep, strict=True) if k]
-
-    def set_template(self, template: FloatArray) -> None:
-        x = np.asarray(template, dtype=np.float64)
-        self.template = x - x.mean(axis=0)
-        self._cache = {}
-        gaps = np.linalg.norm(self.template[:, None] - self.template[None, :], axis=2)
-        self.min_spacing = float(np.min(gaps[np.triu_indices(len(x), 1)]))
-        self.rms_radius = float(np.sqrt(np.mean(np.sum(self.template**2, axis=1))))
-        full = pose_covariance_local(self.template, 1.0)
-        self._full_rot = float(np.linalg.eigvalsh(full[:3, :3])[-1])
-
-    def visible_set(self, vis: NDArray[np.bool_]) -> _VisibleSet | None:
-        """Cached quantities of these visible markers; None when they cannot pose the segment well."""
-        key = vis.tobytes()
-        try:
-            return self._cache[key]
-        except KeyError:
-            pass
-        assert self.template is not None
-        out: _VisibleSet | None = None
-        xv = self.template[vis]
-        if xv.shape[0] >= MIN_POSE_MARKERS and _shape_ok(xv):
-            W = pose_covariance_local(self.template, 1.0, vis)
-            worst = float(np.linalg.eigvalsh(W[:3, :3])[-1])
-            if np.isfinite(W).all() and worst <= POSE_VAR_RATIO_MAX * self._full_rot:
-                xbar = xv.mean(axis=0)
-                xc = np.where(vis[:, None], self.template - xbar, 0.0)
-                out = _VisibleSet(
-                    index=np.flatnonzero(vis),
-                    n=float(xv.shape[0]),
-                    xbar=xbar,
-                    xc=xc,
-                    xx=float(np.einsum("ij,ij->", xc, xc)),
-                    W_unit=W,
-                    dof=3.0 * xv.shape[0] - 6.0,
-                    code=marker_code(np.flatnonzero(vis)),
-                )
-        self._cache[key] = out
-        return out
-
-
-def _shape_ok(points: FloatArray) -> bool:
-    """At least 3 points, not collinear (second singular value above COLLINEAR_RTOL of the first)."""
-    pts = points - points.mean(axis=0)
-    lam = np.linalg.eigvalsh(pts.T @ pts)
-    return bool(points.shape[0] >= MIN_POSE_MARKERS and lam[2] > 0 and lam[1] > COLLINEAR_RTOL**2 * lam[2])
 
 
 def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple[FloatArray, float]:
@@ -1006,7 +848,7 @@ class OnlineJoint:
                 arr = np.array(x, dtype=np.float64)
                 if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < MIN_POSE_MARKERS:
                     raise InputError(f"templates: expected arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
-                if not (np.isfinite(arr).all() and _shape_ok(arr)):
+                if not (np.isfinite(arr).all() and shape_ok(arr)):
                     raise InputError("templates: expected finite, non-collinear template points")
                 if n_markers is not None and n_markers[k] != arr.shape[0]:
                     raise InputError(f"templates: {arr.shape[0]} points differ from n_markers {n_markers}")
@@ -1049,8 +891,8 @@ class OnlineJoint:
     def reset(self) -> None:
         """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
         self.n_markers: tuple[int, int] | None = self._n_markers_arg
-        self._parent: _Segment | None = None
-        self._child: _Segment | None = None
+        self._parent: SegmentTracker | None = None
+        self._child: SegmentTracker | None = None
         self._sums: SlidingSums | None = None
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
         self._solution: PoseSumsCentre | PoseSumsAxis | None = None
@@ -1088,19 +930,11 @@ class OnlineJoint:
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
         self._matched: FloatArray | None = None  # hinge: point_child_matched (see _matched_child_point)
-        # The outlier gate's turn test, per segment: the reference rotation (the segment's
-        # last pose that passed the gate, carried along through the frames held out since),
-        # whether there is one, the number of the frame that set it (frames are numbered as
-        # they arrive, see _arrive), the frames held out in a row and their flip.
-        self._R_ref = np.zeros((2, 3, 3))
-        self._d_ref = np.zeros((2, 3))
-        self._ref_ok = [False, False]
-        self._ref_frame = [0, 0]
-        self._held = [0, 0]
+        # The outlier gate: frames are numbered as they arrive (see _arrive: its turn test's clock);
+        # its limits are cached (_gate_var); each segment's memory is in its tracker.
         self._arrivals = 0
         self._gate_key: tuple[float, int, int] | None = None
         self._gate_cache: FloatArray | None = None
-        self._jump_limit = np.full(2, np.inf)
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
         self.joint_gated_frames = 0
@@ -1190,8 +1024,8 @@ class OnlineJoint:
 
     def _make_segments(self, n_parent: int, n_child: int) -> None:
         self.n_markers = (n_parent, n_child)
-        self._parent = _Segment("parent", n_parent, self.template_frames)
-        self._child = _Segment("child", n_child, self.template_frames)
+        self._parent = SegmentTracker("parent", n_parent, self.template_frames)
+        self._child = SegmentTracker("child", n_child, self.template_frames)
         self._Y = np.zeros((2, max(n_parent, n_child), 3))
         self._none_missing = np.zeros((2, max(n_parent, n_child)), dtype=bool)
         self._missing = self._none_missing
@@ -1512,7 +1346,7 @@ class OnlineJoint:
                 sel, p = side == k, segment.n_markers
                 bj = BlockJumps(
                     segment.shape, local[sel, :p], vis[sel, :p], numbers[rows[seg_rows[k]]], residual_bad[sel],
-                    *self._jump_limits(k),
+                    *segment.jump_limits,
                 )
                 candidate[seg_rows[k][bj.fails(_SS_MARGIN)]] = True
                 shapes.append(bj)
@@ -1522,8 +1356,8 @@ class OnlineJoint:
                     continue
                 Rk = Rs[side == k]
                 close = np.diff(numbers[rows[pos]]) <= GATE_TURN_GAP_FRAMES
-                candidate[pos[1:]] |= close & (_cos_turn(Rk[1:], Rk[:-1]) < _COS_MAX_TURN + _COS_MARGIN)
-                candidate[pos[0]] |= self._turns_segment(k, Rk[0], int(numbers[rows[pos[0]]]))
+                candidate[pos[1:]] |= close & (cos_turn(Rk[1:], Rk[:-1]) < COS_MAX_TURN + _COS_MARGIN)
+                candidate[pos[0]] |= self._tracker(k).turns(Rk[0], int(numbers[rows[pos[0]]]), _COS_MARGIN)
             if self._joint.armed:  # the joint test, each frame against the one before it (a superset)
                 both = np.flatnonzero(posed_ok.all(axis=1))
                 score = self._joint.scores_of(_relative_poses(R[both], d[both]), numbers[rows[both]])
@@ -1553,7 +1387,7 @@ class OnlineJoint:
                     seg = seg_rows[k]
                     i = int(np.searchsorted(seg, hi)) - 1  # the run's last row that poses segment k
                     if i >= 0 and seg[i] >= lo:
-                        self._set_reference(k, R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
+                        self._tracker(k).set_reference(R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
                     if shapes:
                         shapes[k].passed(int(np.searchsorted(seg, lo)), i + 1)
             if f == m:
@@ -1567,7 +1401,7 @@ class OnlineJoint:
                 i = int(np.searchsorted(seg, after))  # the next row that poses segment k
                 if i < seg.size:
                     g = int(rows[seg[i]])
-                    if g not in queued and self._turns_segment(k, R[seg[i], k], int(numbers[g])):
+                    if g not in queued and self._tracker(k).turns(R[seg[i], k], int(numbers[g]), _COS_MARGIN):
                         heapq.heappush(queue, g)
                         queued.add(g)
                 if shapes and i > 0 and seg[i - 1] == after - 1:  # frame f posed segment k
@@ -1768,9 +1602,10 @@ class OnlineJoint:
         """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
 
         ``sigma``: :meth:`_gate_sigma`. None while the gate is off or there is no noise level
-        (fixed templates before any frame entered the statistics). Sets ``_jump_limit`` (2,)
-        with it: ``gate^2`` times each segment's normal jump
-        (:class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again with each
+        (fixed templates before any frame entered the statistics). Sets the segments'
+        limits with it (:meth:`~jointfit_core.segment_tracker.SegmentTracker.set_limits`:
+        the residual's, and ``gate^2`` times each segment's normal jump,
+        :class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again with each
         estimate and every :data:`GATE_REFRESH_FRAMES` frames (per-frame cost; the update
         and block paths then judge alike, :meth:`_update_many` cutting its blocks there).
         """
@@ -1786,9 +1621,8 @@ class OnlineJoint:
                 floor = GATE_SIGMA_FLOOR * self.length_scale
                 s = np.maximum(sigma, floor)
                 self._gate_cache = np.square(self.gate * s)
-                self._jump_limit = self.gate**2 * np.array(
-                    [self._parent.shape.normal_jump(float(s[0]), floor), self._child.shape.normal_jump(float(s[1]), floor)]
-                )
+                for seg, sk, var in ((self._parent, s[0], self._gate_cache[0]), (self._child, s[1], self._gate_cache[1])):
+                    seg.set_limits(float(var), seg.shape.normal_jump(float(sk), floor), self.gate)
         return self._gate_cache
 
     def _gate_sigma(self) -> FloatArray:
@@ -1814,152 +1648,34 @@ class OnlineJoint:
                 sigma[k] = fixed
         return sigma
 
-    def _jump_limits(self, k: int) -> tuple[float, float]:
-        """Segment ``k``'s jump limits (input units squared): ``gate^2`` and :data:`~jointfit_core.gate.GATE_JUMP_LOW` times its normal jump."""
-        normal = float(self._jump_limit[k]) / max(self.gate**2, 1e-300)
-        return float(self._jump_limit[k]), GATE_JUMP_LOW * normal
-
-    def _turn_active(self, frame_no: int) -> tuple[bool, bool]:
-        """Per segment, whether the gate's turn test applies in frame ``frame_no``.
-
-        Not when the segment has no reference yet, when its reference is more than
-        :data:`GATE_TURN_GAP_FRAMES` frames old, or after :data:`GATE_RELOCK_FRAMES` frames
-        held out by the turn test in a row.
-        """
-        ok, held, at = self._ref_ok, self._held, self._ref_frame
-        return (
-            ok[0] and held[0] < GATE_RELOCK_FRAMES and frame_no - at[0] <= GATE_TURN_GAP_FRAMES,
-            ok[1] and held[1] < GATE_RELOCK_FRAMES and frame_no - at[1] <= GATE_TURN_GAP_FRAMES,
-        )
-
-    def _turns_segment(self, k: int, R: FloatArray, frame_no: int) -> bool:
-        """Whether segment ``k`` of pose ``R`` (3, 3) may fail the turn test now (with the batch margin)."""
-        if not self._turn_active(frame_no)[k]:
-            return False
-        return bool(_cos_turn(R, self._R_ref[k]) < _COS_MAX_TURN + _COS_MARGIN)
-
-    def _set_reference(self, k: int, R: FloatArray, d: FloatArray, frame_no: int) -> None:
-        """Segment ``k`` passed the gate in frame ``frame_no`` with pose ``R`` (3, 3), ``d`` (3,)."""
-        self._R_ref[k] = R
-        self._d_ref[k] = d
-        self._ref_ok[k] = True
-        self._ref_frame[k] = frame_no
-        self._held[k] = 0
-
-    def _relabelling(self, k: int, vs: _VisibleSet, frame_no: int) -> NDArray[np.intp] | None:
-        """Segment ``k``'s visible markers in ``self._Y`` as its reference's markers relabelled, or None.
-
-        Returns the template index of each visible marker when each lies within half the
-        template's smallest marker spacing of a different marker predicted by the reference
-        pose: the same points under other labels (a swap). Failing that (at low frame rates
-        the limb moves further than that from one frame to the next), the permutation of the
-        visible markers' labels under which they pass the gate's shape test
-        (:meth:`_relabelled_fit`) without turning from the reference, if any. None when
-        there is none: a segment that jumped (a recording that restarts, another subject),
-        or ghosts.
-        """
+    def _tracker(self, k: int) -> SegmentTracker:
+        """Segment ``k``'s tracker (0 parent, 1 child; the templates' segments exist)."""
         seg = self._parent if k == 0 else self._child
-        assert seg is not None and seg.template is not None
-        y = self._Y[k, vs.index]
-        predicted = seg.template @ self._R_ref[k].T + self._d_ref[k]
-        d2 = np.sum((y[:, None, :] - predicted[None, :, :]) ** 2, axis=2)
-        nearest = np.argmin(d2, axis=1)
-        close = d2[np.arange(nearest.size), nearest] < (0.5 * seg.min_spacing) ** 2
-        if close.all() and np.unique(nearest).size == nearest.size:
-            return nearest
-        return self._relabelled_fit(k, seg, vs.index, y, frame_no)
-
-    def _relabelled_fit(
-        self, k: int, seg: _Segment, index: NDArray[np.intp], y: FloatArray, frame_no: int
-    ) -> NDArray[np.intp] | None:
-        """The labels (template indices) other than ``index`` under which ``y`` (n, 3) fits unturned, or None.
-
-        Every permutation of ``index`` (at most 5! = 120; run only for segments that turned
-        by more than :data:`GATE_MAX_TURN_DEG`) is fitted; among those within
-        :data:`GATE_MAX_TURN_DEG` of the reference that pass the shape and residual tests of
-        :func:`~jointfit_core.gate.gate_fails`, the one of least residual.
-        """
-        assert seg.template is not None
-        gate_var = self._gate_var()
-        if gate_var is None:
-            return None
-        dof = 3 * index.size - 6
-        best: tuple[float, NDArray[np.intp]] | None = None
-        for perm in itertools.permutations(range(index.size)):
-            if perm == tuple(range(index.size)):
-                continue
-            labels = index[list(perm)]
-            x = seg.template[labels]
-            R, d = _kabsch(y, x)
-            if _cos_turn(R, self._R_ref[k]) < _COS_MAX_TURN:
-                continue
-            ss = float(np.sum((x @ R.T + d - y) ** 2))
-            lk, code = (y - d) @ R, marker_code(labels)
-            jump, stale = seg.shape.jump(labels, lk, frame_no, code)
-            last = seg.shape.jump(labels, lk, frame_no, code, last=True)[0]
-            if gate_fails(jump, stale, ss > gate_var[k] * dof, *self._jump_limits(k), last):
-                continue
-            if best is None or ss < best[0]:
-                best = (ss, labels)
-        return None if best is None else best[1]
-
-    def _follow(self, k: int, y: FloatArray, vs: _VisibleSet, labels: NDArray[np.intp], frame_no: int) -> None:
-        """Carry segment ``k``'s turn reference along through a frame held out, its markers relabelled.
-
-        The reference becomes the pose of the frame's visible markers ``y`` (``vs``) under the
-        labels of :meth:`_relabelling` (where the segment is, whatever the swap), so that the true labels
-        pass the turn test again when the swap ends, however far the limb moved meanwhile.
-        """
-        seg = self._parent if k == 0 else self._child
-        assert seg is not None and seg.template is not None
-        self._R_ref[k], self._d_ref[k] = _kabsch(y, seg.template[labels])
-        self._held[k] += 1
-        self._ref_frame[k] = frame_no
+        assert seg is not None
+        return seg
 
     def _shape_tests(
-        self,
-        ps: _PairSet,
-        R: FloatArray,
-        d: FloatArray,
-        ss: FloatArray,
-        gate_var: FloatArray,
-        frame_no: int,
-        refit: bool,
+        self, ps: _PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: bool
     ) -> tuple[list[FloatArray | None], list[float], list[bool]]:
         """Per segment of a posed frame: its markers in the template frame, its jump and whether it fails the gate.
 
-        :func:`~jointfit_core.gate.gate_fails`: the jump (:class:`~jointfit_core.gate.ShapeTrack`)
-        against ``gate^2`` times the segment's normal jump, the residual against
-        ``(gate * sigma)^2`` per degree of freedom. ``refit``: the markers the gate kept
-        (:meth:`_gated`), which pass when they pass the residual test.
+        :meth:`~jointfit_core.segment_tracker.SegmentTracker.shape_test` of each posed segment.
         """
         local: list[FloatArray | None] = [None, None]
         jumps = [np.inf, np.inf]
         fails = [False, False]
-        for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
-            if vs is None:
-                continue
-            assert seg is not None
-            local[k] = lk = (self._Y[k, vs.index] - d[k]) @ R[k]
-            jumps[k], stale = jump, stale = seg.shape.jump(vs.index, lk, frame_no, vs.code)
-            bad = bool(ss[k] > gate_var[k] * vs.dof and vs.dof > 0.0)
-            # gate_fails, scalar, with the jump from the previous frame only where it matters (per-frame cost)
-            limit, low = self._jump_limits(k)
-            if jump == np.inf:
-                fail = bad
-            else:
-                fail = bad and (stale or jump > low)
-                if not fail and jump > limit:
-                    fail = seg.shape.jump(vs.index, lk, frame_no, vs.code, last=True)[0] > limit
-            fails[k] = fail and (bad or not refit)
+        for k, vs in enumerate((ps.parent, ps.child)):
+            if vs is not None:
+                local[k], jumps[k], fails[k] = self._tracker(k).shape_test(
+                    self._Y[k, vs.index], vs, R[k], d[k], float(ss[k]), frame_no, refit
+                )
         return local, jumps, fails
 
     def _seen(self, ps: _PairSet, local: list[FloatArray | None], frame_no: int) -> None:
         """Keep each posed segment's markers of this frame (before the gate) for the next frame's test."""
-        for seg, vs, lk in ((self._parent, ps.parent, local[0]), (self._child, ps.child, local[1])):
+        for k, (vs, lk) in enumerate(((ps.parent, local[0]), (ps.child, local[1]))):
             if vs is not None and lk is not None:
-                assert seg is not None
-                seg.shape.seen(vs.index, lk, frame_no, vs.code)
+                self._tracker(k).shape.seen(vs.index, lk, frame_no, vs.code)
 
     def _gated(
         self,
@@ -1973,56 +1689,29 @@ class OnlineJoint:
         """The missing-marker mask after the gate, for the segments whose fit failed it.
 
         A segment fails when its markers jumped (:meth:`_shape_tests`), or when it turned
-        by more than :data:`GATE_MAX_TURN_DEG` from its reference (its last
-        pose that passed, when ``active``: see :meth:`_turn_active`). For
-        a failing segment, the subsets without one (then two) of its
-        visible markers, keeping at least 3, are fitted; the best one (least
-        residual) that passes the residual or the shape test, AND the turn test, is kept (its
-        left-out markers counted as ``<segment>_gated_markers``). The turn
-        test catches a swap in a nearly symmetric cluster, and one that
-        leaves a symmetric subset (e.g. the two swapped markers equidistant
-        from a third): a ~180 deg turn fits either within the noise. Without
-        such a subset the segment loses all its markers (not posed; counted
-        as ``<segment>_gated``).
+        by more than :data:`GATE_MAX_TURN_DEG` from its reference (its last pose that
+        passed, when ``active``: see
+        :meth:`~jointfit_core.segment_tracker.SegmentTracker.turn_active`). A failing
+        segment keeps the subset of its markers that
+        :meth:`~jointfit_core.segment_tracker.SegmentTracker.leave_out` finds (its left-out
+        markers counted as ``<segment>_gated_markers``); without one it loses all its
+        markers (not posed; counted as ``<segment>_gated``).
         """
-        assert self._parent is not None and self._child is not None
-        gate_var = self._gate_var()
-        assert gate_var is not None
         out = missing.copy()
-        for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
+        for k, vs in enumerate((ps.parent, ps.child)):
+            seg = self._tracker(k)
             if not fail[k] or vs is None or seg.template is None:
                 continue
-            idx = vs.index
-            x, y = seg.template[idx], self._Y[k, idx]
-            best: tuple[float, tuple[int, ...]] | None = None
-            for n_out in (1, 2):
-                if idx.size - n_out < MIN_POSE_MARKERS:
-                    break
-                for drop in itertools.combinations(range(idx.size), n_out):
-                    keep = np.delete(np.arange(idx.size), drop)
-                    Rk, dk = _kabsch(y[keep], x[keep])
-                    ss = float(np.sum((x[keep] @ Rk.T + dk - y[keep]) ** 2))
-                    if ss > gate_var[k] * (3 * keep.size - 6):  # else it fits as well as ever
-                        lk, code = (y[keep] - dk) @ Rk, marker_code(idx[keep])
-                        jump, stale = seg.shape.jump(idx[keep], lk, frame_no, code)
-                        last = seg.shape.jump(idx[keep], lk, frame_no, code, last=True)[0]
-                        if gate_fails(jump, stale, True, *self._jump_limits(k), last):
-                            continue
-                    if active[k] and _cos_turn(Rk, self._R_ref[k]) < _COS_MAX_TURN:
-                        continue
-                    if best is None or ss < best[0]:
-                        best = (ss, drop)
-                if best is not None:
-                    break  # as few markers left out as possible
+            drop = seg.leave_out(self._Y[k, vs.index], vs, active[k], frame_no)
             seg.gated_frames += 1
             if self.gate_log is not None:
                 self.gate_log.append((frame_no, k, np.nan if stamp is None else stamp))
-            if best is None:
+            if drop is None:
                 out[k, : seg.n_markers] = True
                 self._drop(f"{seg.name}_gated")
             else:
-                out[k, idx[list(best[1])]] = True
-                self.dropped[f"{seg.name}_gated_markers"] = self.dropped.get(f"{seg.name}_gated_markers", 0) + len(best[1])
+                out[k, vs.index[list(drop)]] = True
+                self.dropped[f"{seg.name}_gated_markers"] = self.dropped.get(f"{seg.name}_gated_markers", 0) + len(drop)
         return out
 
     def _add(
@@ -2056,25 +1745,27 @@ class OnlineJoint:
         self.frame_poses = (R, d, (ps.parent is not None, ps.child is not None))  # a refit below replaces it
         gate_var = self._gate_var()
         if gate_var is not None:
-            local, jumps, fails = self._shape_tests(ps, R, d, ss, gate_var, frame_no, refit)
+            local, jumps, fails = self._shape_tests(ps, R, d, ss, frame_no, refit)
             fail_p, fail_c = fails
-            active = self._turn_active(frame_no)
+            active = (self._parent.turn_active(frame_no), self._child.turn_active(frame_no))
             turned = [False, False]
             labels: list[NDArray[np.intp] | None] = [None, None]
-            if active[0] or active[1]:
-                cos = _cos_turn(R, self._R_ref)
-                for k, (vs, fail) in enumerate(((ps.parent, fail_p), (ps.child, fail_c))):
-                    if not active[k] or vs is None or not (fail or cos[k] < _COS_MAX_TURN):
-                        continue
-                    # (here: a refit clears the markers it leaves out)
-                    labels[k] = self._relabelling(k, vs, frame_no)
-                    # a rigid turn that is not a relabelling: the segment jumped (the recording
-                    # restarts, another subject): no swap to hold out, the reference starts afresh
-                    turned[k] = bool(cos[k] < _COS_MAX_TURN) and (fail or labels[k] is not None)
+            for k, (vs, fail) in enumerate(((ps.parent, fail_p), (ps.child, fail_c))):
+                if not active[k] or vs is None:
+                    continue
+                seg = self._tracker(k)
+                cos = float(cos_turn(R[k], seg.ref_R))
+                if not (fail or cos < COS_MAX_TURN):
+                    continue
+                # (here: a refit clears the markers it leaves out)
+                labels[k] = seg.relabelling(self._Y[k, vs.index], vs, frame_no)
+                # a rigid turn that is not a relabelling: the segment jumped (the recording
+                # restarts, another subject): no swap to hold out, the reference starts afresh
+                turned[k] = cos < COS_MAX_TURN and (fail or labels[k] is not None)
             if fail_p or fail_c or turned[0] or turned[1]:
                 failed = (fail_p or turned[0], fail_c or turned[1])
                 follow = [
-                    (k, vs, self._Y[k, vs.index].copy(), lab)
+                    (k, self._Y[k, vs.index].copy(), lab)
                     for k, (vs, lab) in enumerate(((ps.parent, labels[0]), (ps.child, labels[1])))
                     if failed[k] and vs is not None and lab is not None
                 ]
@@ -2082,9 +1773,9 @@ class OnlineJoint:
                 out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None), refit=True)
                 # a segment held out whose markers are its reference's relabelled (a swap): the
                 # reference follows the limb through the swap
-                for k, vs, y, lab in follow:
-                    if self._ref_frame[k] != frame_no:
-                        self._follow(k, y, vs, lab, frame_no)
+                for k, y, lab in follow:
+                    if self._tracker(k).ref_frame != frame_no:
+                        self._tracker(k).follow(y, lab, frame_no)
                 for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
                     lk = local[k]
                     if failed[k] and vs is not None and lk is not None:
@@ -2095,7 +1786,7 @@ class OnlineJoint:
             for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
                 lk = local[k]
                 if vs is not None and lk is not None:
-                    self._set_reference(k, R[k], d[k], frame_no)
+                    seg.set_reference(R[k], d[k], frame_no)
                     seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code)
             if not refit:
                 self._seen(ps, local, frame_no)
@@ -2350,8 +2041,8 @@ class OnlineJoint:
         self,
         Rp: FloatArray,
         dp: FloatArray,
-        vp: _VisibleSet,
-        child_pose: tuple[FloatArray, FloatArray, _VisibleSet] | None,
+        vp: VisibleSet,
+        child_pose: tuple[FloatArray, FloatArray, VisibleSet] | None,
     ) -> JointOutput:
         sol = self._solution
         assert sol is not None

@@ -37,7 +37,7 @@ back from an occlusion, with no recent reference, is judged against the
 deformation the cluster normally shows, not the template frames' noise.
 
 Templates (:func:`consistent_frames`): frames are split at sudden changes of
-their inter-marker distances (above :data:`~jointfit_core.estimator.TEMPLATE_DEV_FACTOR`
+their inter-marker distances (above :data:`~jointfit_core.segment_tracker.TEMPLATE_DEV_FACTOR`
 times the 90th percentile of the frame-to-frame changes) into smooth runs;
 the longest run and the runs that continue it smoothly across the frames in
 between are kept. A smoothly deforming cluster is one run; a swap or a ghost

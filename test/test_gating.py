@@ -245,7 +245,7 @@ def test_turn_test_restarts_after_occlusions_and_long_holds(occluded: int) -> No
     new orientation as its reference. After an occlusion longer than GATE_TURN_GAP_FRAMES the test
     has no reference: the turned cluster enters at once.
     """
-    from jointfit_core.estimator import GATE_RELOCK_FRAMES, GATE_TURN_GAP_FRAMES
+    from jointfit_core.segment_tracker import GATE_RELOCK_FRAMES, GATE_TURN_GAP_FRAMES
 
     parent, child, _ = _symmetric_rig(8, 1400)
     child[600:, [0, 2]] = child[600:, [2, 0]]
@@ -333,6 +333,8 @@ def test_block_path_while_frozen_gates_as_the_frame_path() -> None:
     for lo in range(600, 1500, 128):
         many.update_many(parent[lo : lo + 128], child[lo : lo + 128], stamps[lo : lo + 128])
     assert one.dropped == many.dropped and one.dropped.get("child_gated", 0) >= 12 * 14
-    assert one._ref_frame == many._ref_frame and one._held == many._held
-    np.testing.assert_allclose(many._R_ref, one._R_ref, rtol=0, atol=1e-9)
+    for a, b in ((one._parent, many._parent), (one._child, many._child)):  # the segments' turn references
+        assert a is not None and b is not None
+        assert a.ref_frame == b.ref_frame and a.held == b.held
+        np.testing.assert_allclose(b.ref_R, a.ref_R, rtol=0, atol=1e-9)
     assert one.n_window == many.n_window == before
