@@ -44,7 +44,7 @@ def _e_over_k(est: OnlineJoint, motion: object) -> float:
     R, mu_t, mu_e = _procrustes(motion.template_parent, tp)  # type: ignore[attr-defined]
     if est.kind == "ball":
         truth = R @ (motion.centre_parent - mu_t) + mu_e  # type: ignore[attr-defined]
-        return mahalanobis(sol.centre_parent - truth, sol.cov_parent) / 3.0
+        return mahalanobis(sol.centre_parent - truth, sol.cov_parent)  # (helpers.mahalanobis divides by the rank)
     n_true = R @ motion.axis  # type: ignore[attr-defined]
     if n_true @ sol.direction_parent < 0.0:
         n_true = -n_true
