@@ -57,8 +57,10 @@ from .segments import (
     centre_from_pose_sums,
 )
 from .serial import (
+    LAG_TOLERANCE,
     N_TIME_LAG_SUMS,
     NOMINAL_RATE_HZ,
+    SERIAL_LAGS_S,
     LagHistory,
     LagSums,
     SerialInflation,
@@ -115,7 +117,42 @@ _LAG = 233
 _FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
 #: Then the lag pairs in seconds (:class:`~jointfit_core.serial.TimeLagSums`, :class:`~jointfit_core.serial.LagHistory`).
 _TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
-_N_SUMS = _TL.stop
+#: Then the seconds of movement the frame adds (:func:`_moving_seconds`).
+_MOVE = _TL.stop
+_N_SUMS = _MOVE + 1
+
+#: Movement: a frame in the statistics counts as movement when its relative rotation differs by more
+#: than this (deg) from that of its lag pair about 0.32 s earlier (``SERIAL_LAGS_S[3]``, a frame
+#: 0.16-0.48 s before it). White noise of 1 mm on 50 mm clusters moves it by ~2 deg; functional
+#: movements turn joints at 30-100 deg/s (10-30 deg in 0.32 s).
+MOVING_DEG = 5.0
+#: Skin markers: the least movement (s) in the window before an estimate may be called identifiable.
+#: The soft-tissue artefact is correlated over about a second of movement (0.8 s of data per
+#: independent sample on the hip model, ``bench/sta_online.py``), and its size is read from the
+#: residual's correlation at lags of up to seconds (:func:`~jointfit_core.serial.smooth_energy_from_lags`);
+#: from less movement (the first second of a session, or after a still stance) the skin part reads 0
+#: and the estimate was confidently wrong (knee, 10 mm of artefact, 0.3-0.8 s of movement: e/2 up to
+#: 250; ``test/test_skin_movement.py``). Two independent samples of the artefact: 2 s.
+SKIN_MIN_MOVEMENT_S = 2.0
+_MOVE_LAG = SERIAL_LAGS_S.index(0.32)
+_MOVE_NODE = (N_TIME_LAG_SUMS - 2) // len(SERIAL_LAGS_S)
+_MOVE_AT = 2 + _MOVE_LAG * _MOVE_NODE  # that lag's node in the time-lag contribution
+_MOVE_GAP_MAX = (1.0 + LAG_TOLERANCE) * SERIAL_LAGS_S[_MOVE_LAG]
+_MOVE_TRACE_MIN = 1.0 + 2.0 * math.cos(math.radians(MOVING_DEG))  # tr(Q_k^T Q_j) at that turn
+
+
+def _moving_seconds(lagged: FloatArray) -> FloatArray:
+    """Seconds of movement frames add, from their time-lag contributions ``(..., N_TIME_LAG_SUMS)`` -> ``(...)``.
+
+    A frame whose pair at 0.32 s (:class:`~jointfit_core.serial.LagHistory`) turned by more than
+    :data:`MOVING_DEG` adds its gap to the frame before it (at most 0.48 s, the pair's reach; an
+    occlusion's gap is not movement); other frames add 0. ``tr(Q_k^T Q_j) = 1 + 2 cos(angle)`` is
+    the trace of the top-left block of the pair's ``Z_k^T Z_j``.
+    """
+    node = lagged[..., _MOVE_AT : _MOVE_AT + _MOVE_NODE]
+    trace = node[..., 13] + node[..., 18] + node[..., 23]
+    out: FloatArray = np.where((node[..., 0] > 0.0) & (trace < _MOVE_TRACE_MIN), np.minimum(lagged[..., 1], _MOVE_GAP_MAX), 0.0)
+    return out
 
 
 def _gather_indices() -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
@@ -588,8 +625,27 @@ def solve_window(request: SolveRequest) -> SolveResult:
             rot = [rotation_residual_sums(sums, node, n_p, n_c) for _, node in nodes]
             rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rot[0][0], float(sums.n))
     art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth)
-    total = _with_artefact(sol, art.cov)
+    window_s = float(sums.n) * dt if dt > 0.0 else float(sums.n) / NOMINAL_RATE_HZ
+    total = _movement_verdict(_with_artefact(sol, art.cov), float(request.sums[_MOVE]), window_s)
     return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
+
+
+def _movement_verdict(sol: PoseSumsCentre | PoseSumsAxis, seconds: float, window_s: float) -> PoseSumsCentre | PoseSumsAxis:
+    """A skin estimate from too little movement, flagged not identifiable.
+
+    ``seconds`` of movement in a window of ``window_s`` (its frames times their mean interval):
+    at least :data:`SKIN_MIN_MOVEMENT_S`, or half the window when it is shorter than twice that
+    (a window of 2 s could never hold 2 s of movement; half of it moving keeps the stance from
+    dominating the residual's correlation).
+    """
+    needed = min(SKIN_MIN_MOVEMENT_S, 0.5 * window_s)
+    if not sol.identifiable or seconds >= needed:
+        return sol
+    reason = (
+        f"skin markers: {seconds:.2g} s of movement in the window so far; the soft-tissue artefact's size is read "
+        f"from at least {needed:.2g} s of it (before, the estimate looks more certain than it is): keep moving"
+    )
+    return replace(sol, identifiable=False, reason=reason)
 
 
 def _sums_artefact(
@@ -1503,6 +1559,7 @@ class OnlineJoint:
             total[_LAG + 13 : _LAG + 29] = cross.ravel()
             total[_FS] = w @ feature_sums(z[:, :, :3], z[:, :, 3]) if self._skin else 0.0
             total[_TL] = w @ lagged
+            total[_MOVE] = w @ _moving_seconds(lagged)
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
             pr = np.flatnonzero(paired)
@@ -1519,6 +1576,7 @@ class OnlineJoint:
             if self._skin:
                 c[:, _FS] = feature_sums(z[:, :, :3], z[:, :, 3])
             c[:, _TL] = lagged
+            c[:, _MOVE] = _moving_seconds(lagged)
             c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
             self._sums.push_many(c, stamps)
         self._version += 1
@@ -1817,6 +1875,9 @@ class OnlineJoint:
             elif c[_LAG] != 0.0:
                 c[_LAG : _LAG + 29] = 0.0
             self._history.contribution_one(stamp if stamp is not None else frame_no / NOMINAL_RATE_HZ, z, self._tl_view)
+            tl = self._tl_view
+            moved = tl[_MOVE_AT] > 0.0 and tl[_MOVE_AT + 13] + tl[_MOVE_AT + 18] + tl[_MOVE_AT + 23] < _MOVE_TRACE_MIN
+            c[_MOVE] = min(float(tl[1]), _MOVE_GAP_MAX) if moved else 0.0
             if self._sums is None:
                 self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
             self._sums.push(c, stamp)
@@ -1908,6 +1969,16 @@ class OnlineJoint:
         if self._sums is None or self._sums.sums[0] <= 0.0:
             raise InputError(f"no frame has entered the statistics yet ({self.status() or 'no posed frame'})")
         return self._sums.sums
+
+    @property
+    def movement_seconds(self) -> float:
+        """Seconds of movement in the window (weighted, with forgetting): frames whose relative rotation turned by more than :data:`MOVING_DEG` in 0.32 s.
+
+        Skin estimates are identifiable from :data:`SKIN_MIN_MOVEMENT_S` on (see :func:`_moving_seconds`).
+        """
+        if self._sums is None:
+            return 0.0
+        return float(self._sums.sums[_MOVE])
 
     @property
     def serial_inflation(self) -> SerialInflation | None:

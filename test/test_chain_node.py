@@ -101,7 +101,9 @@ def test_chain_in_jointfit_fit(tmp_path: Path) -> None:
     hip, knee = run.traces
     assert hip.final is not None and hip.final.identifiable
     assert knee.final is not None and knee.final.identifiable, None if knee.final is None else knee.final.reason
-    assert knee.runner.estimator.n_window > 1900
+    # the knee's frames enter once the hip centre is published: after the hip's templates and 2 s of movement
+    # (skin, the default: SKIN_MIN_MOVEMENT_S), about 230 frames here
+    assert knee.runner.estimator.n_window > 2000 - 300, knee.runner.estimator.n_window
 
 
 def test_chain_config_errors() -> None:

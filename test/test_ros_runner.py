@@ -141,7 +141,8 @@ def test_runner_estimates_reports_and_saves(tmp_path: Any) -> None:
         out = runner.markers_frame(int(times[k] * 1e9), frames[k])
         runner.estimate(times[k])
         outputs += out is not None
-    assert outputs > 900
+    # skin (the default): the outputs start once the window holds 2 s of movement (SKIN_MIN_MOVEMENT_S)
+    assert outputs > 1000 - 20 - 200 - 50, outputs  # templates, movement, a few estimate ticks
     truth = motion.centre_world_at(times[-1:])[0]  # type: ignore[attr-defined]
     assert np.linalg.norm(out.position - truth) < 5.0  # type: ignore[union-attr]
     st = runner.status()
