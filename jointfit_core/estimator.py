@@ -732,14 +732,15 @@ def solve_window(request: SolveRequest) -> SolveResult:
     serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs, frame_interval_s=dt)
     if "skin" not in request.attachment:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
-    smooth, rotation_smooth = 0.0, 0.0
+    smooth, rotation_smooth, rotation_ss = 0.0, 0.0, 0.0
     if lags.size:
         smooth = smooth_energy_from_lags(lag_sums, counts, lags, ss, float(sums.n))
         if isinstance(sol, PoseSumsAxis):
             n_p, n_c = sol.direction_parent, sol.direction_child
             rot = [rotation_residual_sums(sums, node, n_p, n_c) for _, node in nodes]
-            rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rot[0][0], float(sums.n))
-    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth)
+            rotation_ss = rot[0][0]
+            rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rotation_ss, float(sums.n))
+    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth, rotation_ss)
     total = _with_artefact(sol, art.cov)
     return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
 
@@ -751,6 +752,7 @@ def _sums_artefact(
     centres: tuple[FloatArray, FloatArray],
     smooth: float,
     rotation_smooth: float = 0.0,
+    rotation_ss: float = 0.0,
 ) -> SumsArtefact:
     """The soft-tissue covariance of a window's estimate (skin segments weighted equally)."""
     n = float(sums.n)
@@ -766,7 +768,8 @@ def _sums_artefact(
             return hinge_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:], ref)
     directions = None if isinstance(sol, PoseSumsCentre) else (sol.direction_parent, sol.direction_child)
     return artefact_from_sums(
-        request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions, rotation_smooth
+        request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions,
+        rotation_smooth, rotation_ss,
     )
 
 
