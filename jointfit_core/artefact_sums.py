@@ -43,6 +43,7 @@ from .artefact import NU_MIN
 from .pose import skew
 
 __all__ = [
+    "N_FEATURE_MOMENTS",
     "N_FEATURE_SUMS",
     "SumsArtefact",
     "artefact_from_sums",
@@ -56,16 +57,18 @@ FloatArray = NDArray[np.float64]
 
 #: Number of joint-angle features (rotation vector, squares, cross products).
 N_FEATURES = 9
-#: Layout of :func:`feature_sums`: f (9), Q_ij f_k (81), t_i f_k (27), (Q^T t)_i f_k (27), |f|^2 (1),
-#: f_a f_b for a <= b (45, :data:`_PAIRS` order), f_a f_b Q_ij (45 x 9, pair-major).
+#: Layout of :func:`feature_sums`: f (9), Q_ij f_k (81), t_i f_k (27), (Q^T t)_i f_k (27), |f|^2 (1);
+#: with ``moments`` (hinges) then f_a f_b for a <= b (45, :data:`_PAIRS` order), f_a f_b Q_ij (45 x 9, pair-major).
 _F = slice(0, 9)
 _QF = slice(9, 90)
 _TF = slice(90, 117)
 _PF = slice(117, 144)
 _FF = 144
+N_FEATURE_SUMS = 145
 _FFS = slice(145, 190)
 _FFQ = slice(190, 595)
-N_FEATURE_SUMS = 595
+#: Numbers the second moments add to :func:`feature_sums` (hinges: their alignment reading's Gram).
+N_FEATURE_MOMENTS = 450
 #: The feature pairs ``(a, b)``, ``a <= b``, of the second moments ``sum f_a f_b`` (and ``sum f_a f_b Q``).
 _PAIRS = np.triu_indices(N_FEATURES)
 #: A hinge has one joint angle, whose linear and quadratic terms span a plane of the features.
@@ -91,25 +94,30 @@ def rotation_features(Q: FloatArray) -> FloatArray:
     return out
 
 
-def feature_sums(Q: FloatArray, t: FloatArray) -> FloatArray:
-    """Per-frame contributions (N, :data:`N_FEATURE_SUMS`) of relative poses ``Q`` (N, 3, 3), ``t`` (N, 3)."""
+def feature_sums(Q: FloatArray, t: FloatArray, moments: bool = False) -> FloatArray:
+    """Per-frame contributions (N, L) of relative poses ``Q`` (N, 3, 3), ``t`` (N, 3).
+
+    ``L`` is :data:`N_FEATURE_SUMS`, plus :data:`N_FEATURE_MOMENTS` with ``moments``
+    (``sum f f^T`` and ``sum f f^T (x) Q``, which a hinge's alignment reading needs).
+    """
     f = rotation_features(Q)
     n = f.shape[0]
-    out = np.empty((n, N_FEATURE_SUMS))
+    out = np.empty((n, N_FEATURE_SUMS + (N_FEATURE_MOMENTS if moments else 0)))
     out[:, _F] = f
     out[:, _QF] = (Q.reshape(n, 9, 1) * f[:, None, :]).reshape(n, 81)
     out[:, _TF] = (t[:, :, None] * f[:, None, :]).reshape(n, 27)
     qt = np.einsum("nji,nj->ni", Q, t)
     out[:, _PF] = (qt[:, :, None] * f[:, None, :]).reshape(n, 27)
     out[:, _FF] = np.einsum("nk,nk->n", f, f)
-    ff = f[:, _PAIRS[0]] * f[:, _PAIRS[1]]
-    out[:, _FFS] = ff
-    out[:, _FFQ] = (ff[:, :, None] * Q.reshape(n, 1, 9)).reshape(n, 405)
+    if moments:
+        ff = f[:, _PAIRS[0]] * f[:, _PAIRS[1]]
+        out[:, _FFS] = ff
+        out[:, _FFQ] = (ff[:, :, None] * Q.reshape(n, 1, 9)).reshape(n, 405)
     return out
 
 
-def feature_sums_one(z: FloatArray) -> FloatArray:
-    """:func:`feature_sums` of one relative pose ``z = [Q | t]`` (3, 4): its contribution (:data:`N_FEATURE_SUMS`,).
+def feature_sums_one(z: FloatArray, moments: bool = False) -> FloatArray:
+    """:func:`feature_sums` of one relative pose ``z = [Q | t]`` (3, 4): its contribution (L,).
 
     The per-frame path's form (scalar rotation vector, no batch overhead); equal to the
     batched one to rounding (tested).
@@ -120,16 +128,17 @@ def feature_sums_one(z: FloatArray) -> FloatArray:
     ratio = theta / sin if sin > 1e-9 else 1.0
     a, b, c = 0.5 * (q21 - q12) * ratio, 0.5 * (q02 - q20) * ratio, 0.5 * (q10 - q01) * ratio
     f = np.array([a, b, c, a * a, b * b, c * c, a * b, a * c, b * c])
-    out = np.empty(N_FEATURE_SUMS)
+    out = np.empty(N_FEATURE_SUMS + (N_FEATURE_MOMENTS if moments else 0))
     out[_F] = f
     Q, t = z[:, :3], z[:, 3]
     out[_QF] = np.multiply.outer(Q.ravel(), f).ravel()
     out[_TF] = np.multiply.outer(t, f).ravel()
     out[_PF] = np.multiply.outer(t @ Q, f).ravel()
     out[_FF] = f @ f
-    ff = f[_PAIRS[0]] * f[_PAIRS[1]]
-    out[_FFS] = ff
-    out[_FFQ] = np.multiply.outer(ff, Q.ravel()).ravel()
+    if moments:
+        ff = f[_PAIRS[0]] * f[_PAIRS[1]]
+        out[_FFS] = ff
+        out[_FFQ] = np.multiply.outer(ff, Q.ravel()).ravel()
     return out
 
 
@@ -259,8 +268,8 @@ def _rotation_moments(
 
     Parameters
     ----------
-    fs : ndarray, shape (N_FEATURE_SUMS,)
-        The window's :func:`feature_sums`.
+    fs : ndarray, shape (N_FEATURE_SUMS + N_FEATURE_MOMENTS,)
+        The window's :func:`feature_sums` with ``moments``.
     n : float
         Frames (or weight) in the window.
     S : ndarray, shape (3, 3)
@@ -384,8 +393,8 @@ def artefact_from_sums(
 
     Parameters
     ----------
-    fs : ndarray, shape (N_FEATURE_SUMS,)
-        The window's :func:`feature_sums`.
+    fs : ndarray, shape (N_FEATURE_SUMS,) or (N_FEATURE_SUMS + N_FEATURE_MOMENTS,)
+        The window's :func:`feature_sums`; a hinge (``directions``) needs them with ``moments``.
     n : float
         Frames (or weight) in the window.
     S, sum_t, sum_qt : ndarray, shapes (3, 3), (3,), (3,)
@@ -419,6 +428,11 @@ def artefact_from_sums(
     -------
     SumsArtefact
 
+    Raises
+    ------
+    ValueError
+        ``directions`` given with ``fs`` lacking the moments.
+
     Notes
     -----
     ``d params = J_x dx``, ``dx = sum_jk Delta_jk G_jk`` (:func:`_sum_perturbations`),
@@ -444,6 +458,10 @@ def artefact_from_sums(
     confidently wrong: ``bench/sta_online.py``).
     """
     m = solver(np.concatenate([S.ravel(), sum_t, sum_qt])).size
+    if directions is not None and fs.size < N_FEATURE_SUMS + N_FEATURE_MOMENTS:
+        raise ValueError(
+            f"fs: a hinge needs the feature sums with their moments ({N_FEATURE_SUMS + N_FEATURE_MOMENTS}), got {fs.size}"
+        )
     w = np.asarray(weights, dtype=np.float64)
     smooth_energy = float(smooth_energy) if np.isfinite(smooth_energy) else 0.0
     rotation_smooth = float(rotation_smooth) if directions is not None and np.isfinite(rotation_smooth) else 0.0

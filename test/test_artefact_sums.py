@@ -37,7 +37,7 @@ def _reading(Q: FloatArray, white: float) -> tuple[float, float]:
     """The alignment reading's ``(s^2, nu)`` for measured relative rotations, as ``artefact_from_sums`` forms it."""
     n = Q.shape[0]
     t = C_P - Q @ C_C
-    fs = sums_mod.feature_sums(Q, t).sum(axis=0)
+    fs = sums_mod.feature_sums(Q, t, moments=True).sum(axis=0)
     S, st, sqt = Q.sum(axis=0), t.sum(axis=0), np.einsum("nji,nj->i", Q, t)
     ref = np.linalg.svd(S)[0][:, 0]
 
@@ -61,7 +61,7 @@ def test_second_moments_from_sums_equal_the_direct_ones() -> None:
     rng = np.random.default_rng(3)
     Q = Rotation.from_rotvec(rng.normal(0.0, 0.7, (60, 3))).as_matrix()
     t = rng.normal(0.0, 200.0, (60, 3))
-    fs = sums_mod.feature_sums(Q, t).sum(axis=0)
+    fs = sums_mod.feature_sums(Q, t, moments=True).sum(axis=0)
     F, M = sums_mod._centred_moments(fs, 60.0, Q.sum(axis=0))
     f = sums_mod.rotation_features(Q)
     fc = f - f.mean(axis=0)
@@ -76,7 +76,7 @@ def test_alignment_reading_is_the_projection_on_the_per_frame_columns() -> None:
     Q = Rotation.from_rotvec(rng.normal(0.0, 0.02, (n, 3))).as_matrix() @ _hinge(rng, n, 25.0)
     n_p = np.linalg.svd(Q.sum(axis=0))[0][:, 0]
     n_c = np.linalg.svd(Q.sum(axis=0))[2][0]
-    fs = sums_mod.feature_sums(Q, np.zeros((n, 3))).sum(axis=0)
+    fs = sums_mod.feature_sums(Q, np.zeros((n, 3)), moments=True).sum(axis=0)
     S = Q.sum(axis=0)
     SQ = sums_mod._centred(fs, float(n), S, np.zeros(3), np.zeros(3))[0]
     dn = rng.normal(0.0, 1e-3, (6, 54))
