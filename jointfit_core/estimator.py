@@ -124,7 +124,7 @@ _FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
 #: Then the lag pairs in seconds (:class:`~jointfit_core.serial.TimeLagSums`, :class:`~jointfit_core.serial.LagHistory`).
 _TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
 _N_SUMS = _TL.stop
-#: Hinges only, at the end: the features' second moments (the alignment reading's Gram, zero for rigid markers).
+#: Skin hinges only, at the end: the features' second moments (the alignment reading's Gram).
 _FM = slice(_N_SUMS, _N_SUMS + N_FEATURE_MOMENTS)
 _N_SUMS_HINGE = _FM.stop
 
@@ -1040,8 +1040,8 @@ class OnlineJoint:
         #: ``("skin" | "rigid", "skin" | "rigid")``: how the parent's and the child's markers are attached.
         self.attachment: tuple[str, str] = check_attachment(attachment)
         self._skin = "skin" in self.attachment
-        self._n_sums = _N_SUMS_HINGE if self.kind == "hinge" else _N_SUMS
         self._moments = self._skin and self.kind == "hinge"
+        self._n_sums = _N_SUMS_HINGE if self._moments else _N_SUMS
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
         self.gate_log: list[tuple[int, int, float]] | None = None
@@ -1665,10 +1665,9 @@ class OnlineJoint:
             if self._skin:
                 fsum = w @ feature_sums(z[:, :, :3], z[:, :, 3], self._moments)
                 total[_FS] = fsum[:N_FEATURE_SUMS]
-                total[_N_SUMS:] = fsum[N_FEATURE_SUMS:] if self._moments else 0.0
+                total[_N_SUMS:] = fsum[N_FEATURE_SUMS:]  # the moments: skin hinges only
             else:
                 total[_FS] = 0.0
-                total[_N_SUMS:] = 0.0
             total[_TL] = w @ lagged
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
