@@ -9,7 +9,8 @@ same propagation needs and does it on them:
   relative rotation ``Q_t``, its squares and cross products: the linear plus
   quadratic artefact model of Camomilla et al. 2013 and Bonci et al. 2014)
   and their products with the relative pose: ``sum f``, ``sum Q (x) f``,
-  ``sum t (x) f``, ``sum (Q^T t) (x) f`` and ``sum |f|^2``
+  ``sum t (x) f``, ``sum (Q^T t) (x) f``, ``sum |f|^2``, ``sum f f^T`` and
+  ``sum f f^T (x) Q``
   (:func:`feature_sums`, :data:`N_FEATURE_SUMS` numbers, exactly additive);
 - per solve, the first-order change of the estimate when each cluster moves
   on its bone by ``g_t = G f_t`` (``G`` 12 x 9 with independent entries of
@@ -23,8 +24,10 @@ the joint residual (its autocovariance at short lags, to which white marker
 noise contributes nothing) is the visible part of the same cluster motion,
 whose expected size per unit prior is known from the geometry and the
 movement. A hinge has a second reading, from its axis-alignment residual
-``Q_t n_c - n_p``, which sees the cluster turns that tilt the axis; the
-larger of the two is used.
+``Q_t n_c - n_p``, which sees the cluster turns that tilt the axis: its
+projection on the columns of a turn that follows the hinge angle, from the
+features' second moments ``sum f f^T`` and ``sum f f^T Q`` (as the batch fit's
+:func:`jointfit_core.artefact._moment_scale`); the larger of the two is used.
 """
 
 from __future__ import annotations
@@ -36,9 +39,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .artefact import NU_MIN
 from .pose import skew
 
 __all__ = [
+    "N_FEATURE_MOMENTS",
     "N_FEATURE_SUMS",
     "SumsArtefact",
     "artefact_from_sums",
@@ -52,13 +57,22 @@ FloatArray = NDArray[np.float64]
 
 #: Number of joint-angle features (rotation vector, squares, cross products).
 N_FEATURES = 9
-#: Layout of :func:`feature_sums`: f (9), Q_ij f_k (81), t_i f_k (27), (Q^T t)_i f_k (27), |f|^2 (1).
+#: Layout of :func:`feature_sums`: f (9), Q_ij f_k (81), t_i f_k (27), (Q^T t)_i f_k (27), |f|^2 (1);
+#: with ``moments`` (hinges) then f_a f_b for a <= b (45, :data:`_PAIRS` order), f_a f_b Q_ij (45 x 9, pair-major).
 _F = slice(0, 9)
 _QF = slice(9, 90)
 _TF = slice(90, 117)
 _PF = slice(117, 144)
 _FF = 144
 N_FEATURE_SUMS = 145
+_FFS = slice(145, 190)
+_FFQ = slice(190, 595)
+#: Numbers the second moments add to :func:`feature_sums` (hinges: their alignment reading's Gram).
+N_FEATURE_MOMENTS = 450
+#: The feature pairs ``(a, b)``, ``a <= b``, of the second moments ``sum f_a f_b`` (and ``sum f_a f_b Q``).
+_PAIRS = np.triu_indices(N_FEATURES)
+#: A hinge has one joint angle, whose linear and quadratic terms span a plane of the features.
+HINGE_FEATURES = 2
 #: Relative step of the finite differences of the solvers.
 _STEP = 1e-6
 
@@ -80,22 +94,30 @@ def rotation_features(Q: FloatArray) -> FloatArray:
     return out
 
 
-def feature_sums(Q: FloatArray, t: FloatArray) -> FloatArray:
-    """Per-frame contributions (N, :data:`N_FEATURE_SUMS`) of relative poses ``Q`` (N, 3, 3), ``t`` (N, 3)."""
+def feature_sums(Q: FloatArray, t: FloatArray, moments: bool = False) -> FloatArray:
+    """Per-frame contributions (N, L) of relative poses ``Q`` (N, 3, 3), ``t`` (N, 3).
+
+    ``L`` is :data:`N_FEATURE_SUMS`, plus :data:`N_FEATURE_MOMENTS` with ``moments``
+    (``sum f f^T`` and ``sum f f^T (x) Q``, which a hinge's alignment reading needs).
+    """
     f = rotation_features(Q)
     n = f.shape[0]
-    out = np.empty((n, N_FEATURE_SUMS))
+    out = np.empty((n, N_FEATURE_SUMS + (N_FEATURE_MOMENTS if moments else 0)))
     out[:, _F] = f
     out[:, _QF] = (Q.reshape(n, 9, 1) * f[:, None, :]).reshape(n, 81)
     out[:, _TF] = (t[:, :, None] * f[:, None, :]).reshape(n, 27)
     qt = np.einsum("nji,nj->ni", Q, t)
     out[:, _PF] = (qt[:, :, None] * f[:, None, :]).reshape(n, 27)
     out[:, _FF] = np.einsum("nk,nk->n", f, f)
+    if moments:
+        ff = f[:, _PAIRS[0]] * f[:, _PAIRS[1]]
+        out[:, _FFS] = ff
+        out[:, _FFQ] = (ff[:, :, None] * Q.reshape(n, 1, 9)).reshape(n, 405)
     return out
 
 
-def feature_sums_one(z: FloatArray) -> FloatArray:
-    """:func:`feature_sums` of one relative pose ``z = [Q | t]`` (3, 4): its contribution (:data:`N_FEATURE_SUMS`,).
+def feature_sums_one(z: FloatArray, moments: bool = False) -> FloatArray:
+    """:func:`feature_sums` of one relative pose ``z = [Q | t]`` (3, 4): its contribution (L,).
 
     The per-frame path's form (scalar rotation vector, no batch overhead); equal to the
     batched one to rounding (tested).
@@ -106,13 +128,17 @@ def feature_sums_one(z: FloatArray) -> FloatArray:
     ratio = theta / sin if sin > 1e-9 else 1.0
     a, b, c = 0.5 * (q21 - q12) * ratio, 0.5 * (q02 - q20) * ratio, 0.5 * (q10 - q01) * ratio
     f = np.array([a, b, c, a * a, b * b, c * c, a * b, a * c, b * c])
-    out = np.empty(N_FEATURE_SUMS)
+    out = np.empty(N_FEATURE_SUMS + (N_FEATURE_MOMENTS if moments else 0))
     out[_F] = f
     Q, t = z[:, :3], z[:, 3]
     out[_QF] = np.multiply.outer(Q.ravel(), f).ravel()
     out[_TF] = np.multiply.outer(t, f).ravel()
     out[_PF] = np.multiply.outer(t @ Q, f).ravel()
     out[_FF] = f @ f
+    if moments:
+        ff = f[_PAIRS[0]] * f[_PAIRS[1]]
+        out[_FFS] = ff
+        out[_FFQ] = np.multiply.outer(ff, Q.ravel()).ravel()
     return out
 
 
@@ -178,6 +204,24 @@ def _centred(fs: FloatArray, n: float, S: FloatArray, sum_t: FloatArray, sum_qt:
     return SQ, ST, SP, np.array(ff)
 
 
+def _centred_moments(fs: FloatArray, n: float, S: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Window-centred ``F = sum (f - fbar)(f - fbar)^T`` (9, 9) and ``M_ab = sum (f_a - fbar_a)(f_b - fbar_b) Q`` (9, 9, 3, 3)."""
+    fbar = fs[_F] / n
+    a, b = _PAIRS
+    F = np.zeros((N_FEATURES, N_FEATURES))
+    F[a, b] = fs[_FFS]
+    F[b, a] = fs[_FFS]
+    F -= n * np.outer(fbar, fbar)
+    M = np.zeros((N_FEATURES, N_FEATURES, 3, 3))
+    ffq = fs[_FFQ].reshape(-1, 3, 3)
+    M[a, b] = ffq
+    M[b, a] = ffq
+    SQ_raw = fs[_QF].reshape(3, 3, 9).transpose(2, 0, 1)  # sum f_k Q, not centred
+    M -= fbar[:, None, None, None] * SQ_raw[None] + fbar[None, :, None, None] * SQ_raw[:, None]
+    M += np.multiply.outer(np.outer(fbar, fbar), S)
+    return F, M
+
+
 def _prior_variances(radius: float) -> FloatArray:
     """Per unit scale, the prior variances of one cluster's ``(omega, u)`` (6,): ``1 / r^2`` and 1."""
     return np.concatenate([np.full(3, 1.0 / max(radius**2, 1e-300)), np.ones(3)])
@@ -209,6 +253,115 @@ def _sum_perturbations(SQ: FloatArray, ST: FloatArray, SP: FloatArray) -> FloatA
     return out
 
 
+def _rotation_moments(
+    fs: FloatArray,
+    n: float,
+    S: FloatArray,
+    SQ: FloatArray,
+    directions: tuple[FloatArray, FloatArray],
+    dn: FloatArray,
+    rot_var: tuple[float, float],
+    ss: float,
+    smooth: float,
+) -> tuple[float, float]:
+    """The prior's ``s^2`` read from the axis-alignment residual ``s_t = Q_t n_c - n_p`` on its columns, and its dof.
+
+    Parameters
+    ----------
+    fs : ndarray, shape (N_FEATURE_SUMS + N_FEATURE_MOMENTS,)
+        The window's :func:`feature_sums` with ``moments``.
+    n : float
+        Frames (or weight) in the window.
+    S : ndarray, shape (3, 3)
+        ``sum Q``.
+    SQ : ndarray, shape (9, 3, 3)
+        Window-centred ``sum Q_t f_tk`` (:func:`_centred`).
+    directions : (ndarray (3,), ndarray (3,))
+        The estimated ``(n_p, n_c)`` (unit).
+    dn : ndarray, shape (6, 54)
+        The directions' change per unit entry of ``G`` for its 54 turn entries
+        (``omega_p`` components, then ``omega_c``; 9 features each, feature fastest).
+    rot_var : (float, float)
+        Per unit ``s^2``, the prior variance of one turn component of the parent's and the
+        child's cluster per unit feature (rad^2 per input unit^2).
+    ss : float
+        ``sum_t |s_t|^2`` (dimensionless).
+    smooth : float
+        Its smooth part (:func:`~jointfit_core.serial.smooth_energy_from_lags`); the rest is
+        white noise.
+
+    Returns
+    -------
+    scale2 : float
+        The moment estimate of ``s^2`` (input units squared per rad^2), clipped at 0.
+    nu : float
+        Its effective degrees of freedom, ``(sum lam^2)^2 / sum lam^4`` (inf without columns).
+
+    Notes
+    -----
+    A hinge has one joint angle, so its artefact (linear plus quadratic in that angle) varies
+    in a plane of the 9 features: the plane in which the window's centred features vary most
+    (:data:`HINGE_FEATURES` leading eigenvectors of ``sum (f - fbar)(f - fbar)^T``). The other
+    feature directions are the relative rotation's components off the axis, which for a hinge
+    are not joint angles but the artefact itself (and noise): with them among the columns any
+    off-axis rotation, whatever moved the cluster (a thigh cluster moving with the hip, on a
+    skeleton), was explained as cluster motion following itself, and read in full.
+
+    A turn ``g_t = G f_t`` of the clusters on their bones (``f`` in that plane) moves the
+    residual by ``[Q_t n_c]x omega_p - Q_t [n_c]x omega_c`` plus the directions' refit
+    ``Q_t dn_c - dn_p``: per unit entry of ``G`` a column ``C_jk`` over the frames. As the
+    batch fit does (:func:`jointfit_core.artefact._moment_scale`), ``s`` is read from the
+    residual projected on these columns, ``s^2 = (|C^T s|^2 - sigma^2 tr(C^T C)) / sum lam^2``
+    with ``lam`` the eigenvalues of the columns' Gram ``C^T C`` (scaled by the prior's
+    variances) and ``sigma^2`` the white noise per component of the residual (which lies in
+    the plane normal to the axis): the directions the prior fills most weigh most, and a
+    residual it does not predict is left out. Everything is from the sums: ``C^T s`` from
+    ``sum f Q`` (the residual is linear in ``Q``), the Gram from ``sum f f^T`` and
+    ``sum f f^T Q`` (with ``[Q_t n_c]x`` taken as ``[n_p]x``, exact for a hinge).
+    """
+    n_p, n_c = (np.asarray(v, dtype=np.float64) for v in directions)
+    F, M = _centred_moments(fs, n, S)
+    # the hinge angle's features: the plane in which the window's features vary most
+    _, vecs = np.linalg.eigh(0.5 * (F + F.T))
+    V = vecs[:, ::-1][:, :HINGE_FEATURES]  # (9, r)
+    r = V.shape[1]
+    F = V.T @ F @ V
+    M = np.einsum("ka,klij,lb->abij", V, M, V)
+    SQ = np.einsum("ka,kij->aij", V, SQ)
+    dn = (dn.reshape(6, 2, 3, N_FEATURES) @ V).reshape(6, 6 * r)
+    Ap, Ac = skew(n_p), skew(n_c)  # column j: n x e_j
+    dn_p, dn_c = dn[:3], dn[3:]
+    h = 3 * r
+    # Gram of the direct parts: parent-parent, child-child, parent-child (j, k, j', k')
+    pp = np.einsum("kl,ij->ikjl", F, Ap.T @ Ap).reshape(h, h)
+    cc = np.einsum("kl,ij->ikjl", F, Ac.T @ Ac).reshape(h, h)
+    pc = -np.einsum("ai,klab,bj->ikjl", Ap, M, Ac).reshape(h, h)
+    G = np.block([[pp, pc], [pc.T, cc]])
+    # direct part against the refit (Q_t dn_c - dn_p), and the refit against itself (normal matrix)
+    cross = np.concatenate([
+        np.einsum("ai,kab,bc->ikc", Ap, SQ, dn_c).reshape(h, -1),
+        np.einsum("ai,kba,bc->ikc", Ac, SQ, dn_p).reshape(h, -1),
+    ])
+    A = np.block([[n * np.eye(3), -S], [-S.T, n * np.eye(3)]])
+    G = G + cross + cross.T + dn.T @ A @ dn
+    # the columns against the residual s_t = Q_t n_c - n_p
+    cs = np.concatenate([
+        np.cross(SQ @ n_c, n_p).T.reshape(h),  # parent: e_j . ((sum f_k Q) n_c x n_p)
+        np.einsum("ai,kba,b->ik", Ac, SQ, n_p).reshape(h),  # child: (n_c x e_j) . (sum f_k Q)^T n_p
+    ])
+    cs = cs + dn_c.T @ (n * n_c - S.T @ n_p) - dn_p.T @ (S @ n_c - n * n_p)
+    sv = np.sqrt(np.repeat(np.asarray(rot_var, dtype=np.float64), h))
+    G = 0.5 * (G + G.T) * sv[:, None] * sv[None, :]
+    cs = cs * sv
+    lam = np.maximum(np.linalg.eigvalsh(G), 0.0)
+    den = float(np.sum(lam * lam))
+    if not den > 0.0:
+        return 0.0, float("inf")
+    white = max(ss - smooth, 0.0) / (2.0 * n)
+    scale2 = max((float(cs @ cs) - white * float(lam.sum())) / den, 0.0)
+    return scale2, den * den / float(np.sum(lam**4))
+
+
 def _jacobian(solver: Callable[[FloatArray], FloatArray], x0: FloatArray, scales: FloatArray) -> FloatArray:
     """Central finite-difference Jacobian (m, 15) of ``solver`` at ``x0`` with per-entry steps."""
     cols = []
@@ -234,13 +387,14 @@ def artefact_from_sums(
     smooth_energy: float,
     directions: tuple[FloatArray, FloatArray] | None = None,
     rotation_smooth: float = 0.0,
+    rotation_ss: float = 0.0,
 ) -> SumsArtefact:
     """Soft-tissue covariance of a sums-based estimate (first order in the cluster motion).
 
     Parameters
     ----------
-    fs : ndarray, shape (N_FEATURE_SUMS,)
-        The window's :func:`feature_sums`.
+    fs : ndarray, shape (N_FEATURE_SUMS,) or (N_FEATURE_SUMS + N_FEATURE_MOMENTS,)
+        The window's :func:`feature_sums`; a hinge (``directions``) needs them with ``moments``.
     n : float
         Frames (or weight) in the window.
     S, sum_t, sum_qt : ndarray, shapes (3, 3), (3,), (3,)
@@ -266,10 +420,18 @@ def artefact_from_sums(
         ``Q_t n_c - n_p`` then gives a second reading of the scale.
     rotation_smooth : float
         Hinge: the smooth part of ``sum_t |Q_t n_c - n_p|^2`` (dimensionless).
+    rotation_ss : float
+        Hinge: ``sum_t |Q_t n_c - n_p|^2`` itself (its white part, ``rotation_ss -
+        rotation_smooth``, is the noise of the projection).
 
     Returns
     -------
     SumsArtefact
+
+    Raises
+    ------
+    ValueError
+        ``directions`` given with ``fs`` lacking the moments.
 
     Notes
     -----
@@ -285,12 +447,21 @@ def artefact_from_sums(
     long axis) tilts the estimated axis but hardly moves the point, so the
     point residual may show almost nothing of the motion that biases the
     direction most; the alignment residual ``Q_t n_c - n_p`` shows every
-    turn off the axis (``|omega x n|^2``, ``2 / r^2`` per unit scale, minus what
-    the direction's refit absorbs, ``dn^T A dn``). The scale is the larger of
-    the two readings (without it, a knee whose shank cluster turned about
-    the shank read no artefact and was confidently wrong: ``bench/sta_online.py``).
+    turn off the axis. It is read on the columns a turn following the hinge
+    angle gives it (:func:`_rotation_moments`: projected, as the batch fit
+    reads its scale, not as an energy ratio, which took every off-axis
+    rotation for such a turn: on a skeleton, the thigh cluster moving with
+    the hip made the knees' direction sd 21-42 deg for 3.5-5.4 deg errors),
+    times ``nu / (nu - 2)`` for its few effective degrees of freedom. The
+    scale is the larger of the two readings (without the second, a knee
+    whose shank cluster turned about the shank read no artefact and was
+    confidently wrong: ``bench/sta_online.py``).
     """
     m = solver(np.concatenate([S.ravel(), sum_t, sum_qt])).size
+    if directions is not None and fs.size < N_FEATURE_SUMS + N_FEATURE_MOMENTS:
+        raise ValueError(
+            f"fs: a hinge needs the feature sums with their moments ({N_FEATURE_SUMS + N_FEATURE_MOMENTS}), got {fs.size}"
+        )
     w = np.asarray(weights, dtype=np.float64)
     smooth_energy = float(smooth_energy) if np.isfinite(smooth_energy) else 0.0
     rotation_smooth = float(rotation_smooth) if directions is not None and np.isfinite(rotation_smooth) else 0.0
@@ -307,8 +478,6 @@ def artefact_from_sums(
     da = _jacobian(lambda x: ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:]), x0, steps) @ delta
     A = np.block([[n * np.eye(3), -S], [-S.T, n * np.eye(3)]])
     absorbed_jk = np.einsum("ik,ij,jk->k", da, A, da)  # (108,)
-    # hinge: what the directions' refit absorbs of the alignment residual (its normal matrix is A too)
-    absorbed_rot = np.einsum("ik,ij,jk->k", dparams[:6], A, dparams[:6]) if directions is not None else absorbed_jk
     var = np.concatenate([_prior_variances(radii[0]) * w[0], _prior_variances(radii[1]) * w[1]])
     vjk = np.repeat(var, 9)
     c_p, c_c = (np.asarray(c, dtype=np.float64) for c in centres)
@@ -316,11 +485,14 @@ def artefact_from_sums(
     direct += w[1] * (2.0 * float(c_c @ c_c) / max(radii[1] ** 2, 1e-300) + 3.0)
     visible = direct * ff - float(absorbed_jk @ vjk)
     scale2 = smooth_energy / visible if visible > 0.0 else 0.0
-    if directions is not None:
-        # only the turns (omega) reach the alignment residual: |omega x n|^2 has 2 / r^2 per unit scale
-        rot = np.concatenate([var[:3], np.zeros(3), var[6:9], np.zeros(3)])
-        visible_rot = 2.0 * float(rot[0] + rot[6]) * ff - float(absorbed_rot @ np.repeat(rot, 9))
-        if visible_rot > 0.0:
-            scale2 = max(scale2, rotation_smooth / visible_rot)
+    if directions is not None and rotation_smooth > 0.0:
+        # only the turns (omega) reach the alignment residual; read on their columns, as the batch fit
+        turns = np.r_[0:27, 54:81]
+        rot2, nu = _rotation_moments(
+            fs, n, S, SQ, directions, dparams[:6, turns], (float(var[0]), float(var[6])), rotation_ss, rotation_smooth
+        )
+        # read from nu effective directions: the error over the covariance is F(k, nu)-like (artefact.py, eq. A5)
+        nu = max(nu, NU_MIN)
+        scale2 = max(scale2, rot2 * nu / (nu - 2.0))
     cov = scale2 * ((dparams * vjk) @ dparams.T)
     return SumsArtefact(0.5 * (cov + cov.T), math.sqrt(scale2 * float(w.max())))

@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .artefact import check_attachment
 from .artefact_sums import (
+    N_FEATURE_MOMENTS,
     N_FEATURE_SUMS,
     SumsArtefact,
     artefact_from_sums,
@@ -120,6 +121,9 @@ _TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
 #: Then the seconds of movement the frame adds (:func:`_moving_seconds`).
 _MOVE = _TL.stop
 _N_SUMS = _MOVE + 1
+#: Skin hinges only, at the end: the features' second moments (the alignment reading's Gram).
+_FM = slice(_N_SUMS, _N_SUMS + N_FEATURE_MOMENTS)
+_N_SUMS_HINGE = _FM.stop
 
 #: Movement: a frame in the statistics counts as movement when its relative rotation differs by more
 #: than this (deg) from that of its lag pair about 0.32 s earlier (``SERIAL_LAGS_S[3]``, a frame
@@ -617,14 +621,15 @@ def solve_window(request: SolveRequest) -> SolveResult:
     serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs, frame_interval_s=dt)
     if "skin" not in request.attachment:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
-    smooth, rotation_smooth = 0.0, 0.0
+    smooth, rotation_smooth, rotation_ss = 0.0, 0.0, 0.0
     if lags.size:
         smooth = smooth_energy_from_lags(lag_sums, counts, lags, ss, float(sums.n))
         if isinstance(sol, PoseSumsAxis):
             n_p, n_c = sol.direction_parent, sol.direction_child
             rot = [rotation_residual_sums(sums, node, n_p, n_c) for _, node in nodes]
-            rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rot[0][0], float(sums.n))
-    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth)
+            rotation_ss = rot[0][0]
+            rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rotation_ss, float(sums.n))
+    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth, rotation_ss)
     window_s = float(sums.n) * dt if dt > 0.0 else float(sums.n) / NOMINAL_RATE_HZ
     total = _movement_verdict(_with_artefact(sol, art.cov), float(request.sums[_MOVE]), window_s)
     return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
@@ -655,6 +660,7 @@ def _sums_artefact(
     centres: tuple[FloatArray, FloatArray],
     smooth: float,
     rotation_smooth: float = 0.0,
+    rotation_ss: float = 0.0,
 ) -> SumsArtefact:
     """The soft-tissue covariance of a window's estimate (skin segments weighted equally)."""
     n = float(sums.n)
@@ -669,8 +675,10 @@ def _sums_artefact(
         def solver(x: FloatArray) -> FloatArray:
             return hinge_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:], ref)
     directions = None if isinstance(sol, PoseSumsCentre) else (sol.direction_parent, sol.direction_child)
+    fs = request.sums[_FS] if directions is None else np.concatenate([request.sums[_FS], request.sums[_FM]])
     return artefact_from_sums(
-        request.sums[_FS], n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions, rotation_smooth
+        fs, n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions,
+        rotation_smooth, rotation_ss,
     )
 
 
@@ -937,6 +945,8 @@ class OnlineJoint:
         #: ``("skin" | "rigid", "skin" | "rigid")``: how the parent's and the child's markers are attached.
         self.attachment: tuple[str, str] = check_attachment(attachment)
         self._skin = "skin" in self.attachment
+        self._moments = self._skin and self.kind == "hinge"
+        self._n_sums = _N_SUMS_HINGE if self._moments else _N_SUMS
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
         self.gate_log: list[tuple[int, int, float]] | None = None
@@ -969,7 +979,7 @@ class OnlineJoint:
         #: the frame came in a block). The skeleton's segment outputs read it
         #: (:mod:`jointfit_core.segment_frames`).
         self.frame_poses: tuple[FloatArray, FloatArray, tuple[bool, bool]] | None = None
-        self._contribution = np.zeros(_N_SUMS)
+        self._contribution = np.zeros(self._n_sums)
         self._contribution[0] = 1.0
         # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
         self._z_view = self._contribution[_Z].reshape(3, 4)
@@ -1523,7 +1533,7 @@ class OnlineJoint:
             poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
         R, d, ss = poses
         if self._sums is None:
-            self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
+            self._sums = SlidingSums(self.spec, self._n_sums, self._n_sums, None)
         stamps = None if st is None else st[rows]
         x = np.empty((m, 3, 4))
         x[:, :, :3] = R[:, 1]
@@ -1543,7 +1553,7 @@ class OnlineJoint:
             # No window ring to keep records for: sum the block's weighted contributions with
             # matrix products, never forming them one per frame.
             w, w_old = self._sums.block_weights(m, stamps)
-            total = np.empty(_N_SUMS)
+            total = np.empty(self._n_sums)
             total[0] = w.sum()
             total[_Z] = w @ zf
             total[_ZZ] = ((zf * w[:, None]).T @ zf).ravel()
@@ -1557,13 +1567,18 @@ class OnlineJoint:
             total[_LAG + 1 : _LAG + 13] = wp @ (z + z_prev).reshape(m, 12)
             cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
             total[_LAG + 13 : _LAG + 29] = cross.ravel()
-            total[_FS] = w @ feature_sums(z[:, :, :3], z[:, :, 3]) if self._skin else 0.0
+            if self._skin:
+                fsum = w @ feature_sums(z[:, :, :3], z[:, :, 3], self._moments)
+                total[_FS] = fsum[:N_FEATURE_SUMS]
+                total[_N_SUMS:] = fsum[N_FEATURE_SUMS:]  # the moments: skin hinges only
+            else:
+                total[_FS] = 0.0
             total[_TL] = w @ lagged
             total[_MOVE] = w @ _moving_seconds(lagged)
             self._sums.push_weighted_sum(total, w_old, m, stamps)
         else:
             pr = np.flatnonzero(paired)
-            c = np.empty((m, _N_SUMS))
+            c = np.empty((m, self._n_sums))
             c[:, 0] = 1.0
             c[:, _Z] = zf
             np.multiply(zf[:, :, None], zf[:, None, :], out=c[:, _ZZ].reshape(m, 12, 12))
@@ -1574,7 +1589,9 @@ class OnlineJoint:
             c[pr, _LAG] = 1.0
             c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
             if self._skin:
-                c[:, _FS] = feature_sums(z[:, :, :3], z[:, :, 3])
+                fsum = feature_sums(z[:, :, :3], z[:, :, 3], self._moments)
+                c[:, _FS] = fsum[:, :N_FEATURE_SUMS]
+                c[:, _N_SUMS:] = fsum[:, N_FEATURE_SUMS:]
             c[:, _TL] = lagged
             c[:, _MOVE] = _moving_seconds(lagged)
             c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
@@ -1866,7 +1883,9 @@ class OnlineJoint:
             c[_SS : _SS + 4 : 2] = ss
             c[_SS + 1 : _SS + 4 : 2] = ps.dof
             if self._skin:
-                c[_FS] = feature_sums_one(z)
+                fsum = feature_sums_one(z, self._moments)
+                c[_FS] = fsum[:N_FEATURE_SUMS]
+                c[_N_SUMS:] = fsum[N_FEATURE_SUMS:]
             # The lag pair (previous frame in the statistics, this one), stored with this frame.
             if self._prev_in:
                 c[_LAG] = 1.0
@@ -1879,7 +1898,7 @@ class OnlineJoint:
             moved = tl[_MOVE_AT] > 0.0 and tl[_MOVE_AT + 13] + tl[_MOVE_AT + 18] + tl[_MOVE_AT + 23] < _MOVE_TRACE_MIN
             c[_MOVE] = min(float(tl[1]), _MOVE_GAP_MAX) if moved else 0.0
             if self._sums is None:
-                self._sums = SlidingSums(self.spec, _N_SUMS, _N_SUMS, None)
+                self._sums = SlidingSums(self.spec, self._n_sums, self._n_sums, None)
             self._sums.push(c, stamp)
             self._version += 1
             self._z_prev[...] = z

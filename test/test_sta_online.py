@@ -149,6 +149,8 @@ def test_one_frames_feature_sums_equal_the_batched_ones() -> None:
     rotvecs = np.concatenate([rng.normal(0.0, 0.8, (40, 3)), [[0.0, 0.0, 0.0], [1e-12, 0.0, 0.0], [3.1, 0.0, 0.1]]])
     Q = Rotation.from_rotvec(rotvecs).as_matrix()
     t = rng.normal(0.0, 300.0, (Q.shape[0], 3))
-    batched = feature_sums(Q, t)
-    one = np.stack([feature_sums_one(np.concatenate([Q[k], t[k][:, None]], axis=1)) for k in range(Q.shape[0])])
-    np.testing.assert_allclose(one, batched, rtol=1e-12, atol=1e-12 * np.abs(batched).max())
+    for moments in (False, True):  # with the second moments (hinges) the first part is the same
+        batched = feature_sums(Q, t, moments)
+        one = np.stack([feature_sums_one(np.concatenate([Q[k], t[k][:, None]], axis=1), moments) for k in range(Q.shape[0])])
+        np.testing.assert_allclose(one, batched, rtol=1e-12, atol=1e-12 * np.abs(batched).max())
+    np.testing.assert_array_equal(feature_sums(Q, t, True)[:, : feature_sums(Q, t).shape[1]], feature_sums(Q, t))
