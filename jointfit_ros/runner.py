@@ -183,6 +183,8 @@ def _largest_sd(cov: FloatArray) -> float:
 def _artefact_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: str) -> dict[str, Any]:
     """The statistical and with-artefact parts of the estimate's sd, for /diagnostics (keys with units ``u``)."""
     values: dict[str, Any] = {"attachment": "/".join(est.attachment)}
+    if "skin" in est.attachment:
+        values["movement in the window (s)"] = round(est.movement_seconds, 2)
     stat = est.statistical_solution
     if stat is None:
         return values

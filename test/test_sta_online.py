@@ -83,16 +83,45 @@ def test_artefact_part_does_not_shrink_with_the_window() -> None:
     assert stat_long < stat_short
 
 
-def test_rigid_data_keep_their_calibration_with_skin_setting() -> None:
+def test_rigid_data_with_skin_setting_are_never_more_confident() -> None:
+    """Clean data told ``skin``: the same centre, a covariance at least the rigid one's (never more confident).
+
+    A white residual shows no smooth part, but that does not prove there is none: the smooth part is
+    taken at the size the lags could just not tell from noise (its detection limit), so the skin
+    setting on clean data is cautious (here e/3 ~0.1 against ~1-2 with ``rigid``); the rigid
+    attachment reads no artefact at all.
+    """
     for seed in (31, 32, 33):
         e_skin, est_skin, _ = _hip_trial(seed, 0.0, "skin")
         e_rigid, est_rigid, _ = _hip_trial(seed, 0.0, "rigid")
         np.testing.assert_allclose(est_skin.estimate().centre_parent, est_rigid.estimate().centre_parent, rtol=1e-12)
-        # the smooth part of a white residual is within its noise (a 2-sd threshold): at most a trace of
-        # artefact is read into it, and the calibration stays that of the rigid setting
-        assert e_skin == pytest.approx(e_rigid, rel=0.2), (e_skin, e_rigid)
-        assert np.trace(est_skin.estimate().cov_parent) < 1.5 * np.trace(est_rigid.estimate().cov_parent)
+        assert e_skin <= e_rigid, (e_skin, e_rigid)
+        assert np.trace(est_skin.estimate().cov_parent) >= np.trace(est_rigid.estimate().cov_parent)
         assert est_rigid.statistical_solution is None and est_rigid.artefact_scale == 0.0
+
+
+def test_a_smooth_part_below_detection_is_not_read_as_none() -> None:
+    """A knee with 5 mm of shank artefact at 25 Hz whose smooth residual the lags cannot tell from the noise.
+
+    Read as 0, the skin part vanished and the trial's first 12 s were published at e/2 of 26-127 (2.3 deg
+    of error against an sd of 0.2-0.4); taken at its detection limit it is e/2 < 1.
+    """
+    from jointfit_core.soft_tissue import knee_motion
+
+    rng = np.random.default_rng(103)
+    motion = knee_motion(rng)
+    t = np.arange(750) / 25.0
+    thigh, shank = skin_markers_at(rng, motion, t, child_mm=5.0, parent_mm=5.0 / 3.0, noise_std=0.7)
+    est = OnlineJoint("hinge", window=t.size + 10, attachment="skin")
+    est.update_many(thigh[:200], shank[:200], t[:200])  # the first 8 s
+    sol = est.estimate()
+    tp = est.templates[0]
+    assert tp is not None
+    n = _truth_in_template(motion.template_parent, tp, motion.template_parent.mean(axis=0) + motion.axis)
+    n = n - _truth_in_template(motion.template_parent, tp, motion.template_parent.mean(axis=0))
+    d = sol.direction_parent - n * np.sign(n @ sol.direction_parent)  # type: ignore[union-attr]
+    assert np.degrees(np.linalg.norm(d)) > 1.0  # the artefact's bias is there
+    assert mahalanobis(d, sol.cov_direction_parent) < 3.0  # type: ignore[union-attr]
 
 
 def test_attachment_is_checked_and_saved() -> None:

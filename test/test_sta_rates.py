@@ -154,7 +154,11 @@ def test_smooth_part_is_read_from_several_lags() -> None:
     lags = np.array([0.08, 0.16, 0.32])
     smooth = smooth_energy_from_lags(np.array([0.16, 0.09, 0.03]) * n, pairs, lags, ss, n)
     assert smooth == pytest.approx(0.16 * n)
-    assert smooth_energy_from_lags(np.array([-0.5, 0.3, -0.2]) * sd * n, pairs, lags, ss, n) == 0.0
+    # white noise's is not told: the smooth part is taken at the detection limit (2 sd of the three lags
+    # pooled, a third per lag), small against the noise, not 0
+    limit = 2.0 * (ss / n) * np.sqrt(3.0 / n) / 3.0 * n
+    assert smooth_energy_from_lags(np.array([-0.5, 0.3, -0.2]) * sd * n, pairs, lags, ss, n) == pytest.approx(limit)
+    assert limit < 0.1 * ss  # (7 % of the energy with these 250 pairs per lag)
     assert smooth_energy_from_lags(np.array([1.0, 1.0, 1.0]), pairs, lags, 0.0, n) == 0.0
 
 
