@@ -2319,6 +2319,10 @@ class OnlineJoint:
                 raise InputError(f"calibration: the noise sds {est._sigma} are not finite positive numbers")
             serial = data.get("serial_inflation")  # absent from calibrations saved before it existed
             est._serial = None if serial is None else _serial_from_dict(serial)
+            scale = float(data.get("artefact_scale", 0.0))  # absent before the soft-tissue part existed
+            if not (math.isfinite(scale) and scale >= 0.0):
+                raise InputError(f"calibration: the artefact scale {scale!r} is not a finite number >= 0")
+            est._artefact_scale = scale  # (saved again as loaded: a save after a restart writes the same file)
             matched = data.get("point_child_matched")  # absent before it existed
             est._matched = None if matched is None else check_vector3(matched, name="point_child_matched")
             est._world_cache = {}
