@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jointfit_core.artefact import check_attachment, white_noise_std
+from jointfit_core.artefact import _moment_scale, check_attachment, white_noise_std
 from jointfit_core.errors import InputError
 from jointfit_core.pose import noise_std_from_fit, poses_from_markers, template_from_markers
 from jointfit_core.segments import fit_axis_two_segments, fit_centre_two_segments
@@ -130,3 +130,26 @@ def test_skin_hinge_reports_both_parts() -> None:
     assert np.trace(fit.cov_direction_parent) > np.trace(fit.cov_direction_parent_statistical)
     assert np.trace(fit.cov_point_parent) > np.trace(fit.cov_point_parent_statistical)
     assert abs(fit.direction_parent @ fit.cov_direction_parent @ fit.direction_parent) < 1e-12
+
+
+@pytest.mark.parametrize("decay", [0.7, 0.9])
+def test_prior_scale_has_the_spread_its_degrees_of_freedom_say(decay: float) -> None:
+    """eq. A3/A5: the scale read along the prior's directions is s^2 chi2_nu / nu with the stated nu.
+
+    The F-like factor nu / (nu - 2) of eq. A5 rests on this. 4000 seeded draws of ``u ~ N(0, s^2 B B^T +
+    I)`` with a prior that dominates the noise; mean within 4 sigma of s^2, variance within 15 % (4 sigma
+    of a sample variance of 4000 chi-square-like draws, kurtosis 3 + 12 / nu) of ``2 s^4 / nu``.
+    """
+    rng = np.random.default_rng(41)
+    r, s2, draws = 30, 4.0, 4000
+    lam = 1e4 * decay ** np.arange(r)
+    Q = np.linalg.qr(rng.normal(size=(r, r)))[0]
+    B = Q @ np.diag(np.sqrt(lam))  # B B^T = Q diag(lam) Q^T
+    est = np.empty(draws)
+    nu = 0.0
+    for i in range(draws):
+        u = np.sqrt(s2) * B @ rng.normal(size=r) + rng.normal(size=r)
+        est[i], nu = _moment_scale(u, B)
+    assert 2.0 < nu < 10.0  # a few effective directions: the regime of the skin fits
+    assert abs(est.mean() - s2) < 4.0 * s2 * np.sqrt(2.0 / nu / draws)
+    assert est.var() / (2.0 * s2**2 / nu) == pytest.approx(1.0, rel=0.15)
