@@ -117,6 +117,7 @@ def _params(path: Path, tmp: Path) -> Path:
       parent_markers: [PELV1, PELV2, PELV3, PELV4]
       child_markers: [THIGH1, THIGH2, THIGH3, THIGH4]
       template_frames: 30
+      attachment: rigid             # the fake mocap's markers (skin would add its detection-limit part)
       calibration_file: "{tmp / "hip.yaml"}"
       target_sd: {TARGET_MM / 1000.0}
       auto_freeze: true
@@ -125,6 +126,7 @@ def _params(path: Path, tmp: Path) -> Path:
       parent_markers: [FEMUR1, FEMUR2, FEMUR3, FEMUR4]
       child_markers: [SHANK1, SHANK2, SHANK3, SHANK4]
       template_frames: 30
+      attachment: rigid
       target_sd: 1.0
 """)
     return path
