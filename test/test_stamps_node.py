@@ -254,7 +254,10 @@ def test_frames_that_never_arrive_are_counted_and_warned(rig: tuple[_Client, Any
     t = _warm_up(client, rigs)
     _stream(client, rigs, t, 2.0)  # the period is known after 200 frames
     assert client.spin_until(lambda: "frames missed (gaps in the stamps)" in client.status("input"), 3.0)
+    client.spin_until(lambda: False, 0.5)  # a status after the last frame (stamps go on where they stopped)
     missed_before = _count(client, "input", "frames missed (gaps in the stamps)")
+    assert "messages" in client.status("input")
+    received_before = _count(client, "input", "messages")
     # every 4th frame lost on the way (as when the node or the network cannot keep up)
     t += 2.0
     rng = np.random.default_rng(4)
@@ -271,8 +274,12 @@ def test_frames_that_never_arrive_are_counted_and_warned(rig: tuple[_Client, Any
         client.status("input")
     )
     assert _level(client, "input") == WARN
+    client.spin_until(lambda: False, 0.5)  # a status after the last frame
     missed = _count(client, "input", "frames missed (gaps in the stamps)") - missed_before
-    assert 0.8 * RATE * 2.0 / 4 <= missed <= RATE * 2.0 / 4 + 5, missed
+    # frames a loaded machine loses on its own (best effort) are missed too: the count must cover exactly those
+    lost = int(2.0 * RATE) - int(2.0 * RATE) // 4 - (_count(client, "input", "messages") - received_before)
+    assert 0 <= lost <= 0.1 * RATE * 2.0, lost  # (a machine that loses more is too loaded for this test)
+    assert 0.8 * RATE * 2.0 / 4 <= missed <= RATE * 2.0 / 4 + lost + 5, (missed, lost)
     assert proc.poll() is None
 
 
