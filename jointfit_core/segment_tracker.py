@@ -290,7 +290,7 @@ class SegmentTracker:
         local = (y - d) @ R
         jump, stale = self.shape.jump(vs.index, local, frame_no, vs.code)
         bad = bool(ss > self.residual_limit * vs.dof and vs.dof > 0.0)
-        # the jump from the previous frame only where it matters (per-frame cost)
+        # gate_fails, in scalars, with the jump from the previous frame only where it matters (per-frame cost)
         limit, low = self.jump_limits
         if jump == np.inf:
             fail = bad
