@@ -20,6 +20,21 @@ def transform(markers: NDArray[np.float64], rot: NDArray[np.float64], trans: NDA
     return np.einsum("ij,npj->npi", rot, markers) + trans
 
 
+def template_rotation(motion_template: NDArray[np.float64], template: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation from a motion's bone frame to an estimator's template frame (their markers' Procrustes)."""
+    u, _, vt = np.linalg.svd((motion_template - motion_template.mean(axis=0)).T @ (template - template.mean(axis=0)))
+    out: NDArray[np.float64] = vt.T @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(vt.T @ u.T)))]) @ u.T
+    return out
+
+
+def truth_in_template(
+    motion_template: NDArray[np.float64], template: NDArray[np.float64], point: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """A point of the motion's bone frame in the estimator's template frame."""
+    R = template_rotation(motion_template, template)
+    return np.asarray(R @ (point - motion_template.mean(axis=0)) + template.mean(axis=0))
+
+
 def mahalanobis(err: NDArray[np.float64], cov: NDArray[np.float64]) -> float:
     """``err^T cov^+ err`` divided by the rank of ``cov`` (Stoddart's v^2)."""
     pinv = np.linalg.pinv(cov, rcond=1e-10, hermitian=True)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import mahalanobis
+from helpers import mahalanobis, template_rotation
 
 from jointfit_core.estimator import MOVING_DEG, SKIN_MIN_MOVEMENT_S, OnlineJoint
 from jointfit_core.soft_tissue import knee_motion, skin_markers_at
@@ -37,10 +37,7 @@ def _direction_e2(est: OnlineJoint, motion: object) -> float:
     sol = est.solution
     tp = est.templates[0]
     assert sol is not None and tp is not None
-    x = motion.template_parent  # type: ignore[attr-defined]
-    u, _, vt = np.linalg.svd((x - x.mean(axis=0)).T @ (tp - tp.mean(axis=0)))
-    R = vt.T @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(vt.T @ u.T)))]) @ u.T
-    n = R @ motion.axis  # type: ignore[attr-defined]
+    n = template_rotation(motion.template_parent, tp) @ motion.axis  # type: ignore[attr-defined]
     d = sol.direction_parent - n * np.sign(n @ sol.direction_parent)  # type: ignore[union-attr]
     return mahalanobis(d, sol.cov_direction_parent)  # type: ignore[union-attr]
 

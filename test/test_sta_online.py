@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import mahalanobis
+from helpers import mahalanobis, template_rotation, truth_in_template
 
 from jointfit_core.errors import InputError
 from jointfit_core.estimator import OnlineJoint
@@ -22,14 +22,6 @@ from jointfit_core.soft_tissue import hip_motion, skin_markers_at
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 100.0
-
-
-def _truth_in_template(motion_template: np.ndarray, template: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """A point of the motion's parent frame in the estimator's template frame."""
-    mu_t, mu_e = motion_template.mean(axis=0), template.mean(axis=0)
-    u, _, vt = np.linalg.svd((motion_template - mu_t).T @ (template - mu_e))
-    R = vt.T @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(vt.T @ u.T)))]) @ u.T
-    return np.asarray(R @ (point - mu_t) + mu_e)
 
 
 def _hip_trial(seed: int, mm: float, attachment: str, seconds: float = 30.0) -> tuple[float, OnlineJoint, float]:
@@ -43,7 +35,7 @@ def _hip_trial(seed: int, mm: float, attachment: str, seconds: float = 30.0) -> 
     sol = est.estimate()
     tp = est.templates[0]
     assert tp is not None
-    truth = _truth_in_template(motion.template_parent, tp, motion.centre_parent)
+    truth = truth_in_template(motion.template_parent, tp, motion.centre_parent)
     delta = sol.centre_parent - truth
     return mahalanobis(delta, sol.cov_parent), est, float(np.linalg.norm(delta))  # e/3: helpers.mahalanobis divides by the rank
 
@@ -117,8 +109,7 @@ def test_a_smooth_part_below_detection_is_not_read_as_none() -> None:
     sol = est.estimate()
     tp = est.templates[0]
     assert tp is not None
-    n = _truth_in_template(motion.template_parent, tp, motion.template_parent.mean(axis=0) + motion.axis)
-    n = n - _truth_in_template(motion.template_parent, tp, motion.template_parent.mean(axis=0))
+    n = template_rotation(motion.template_parent, tp) @ motion.axis
     d = sol.direction_parent - n * np.sign(n @ sol.direction_parent)  # type: ignore[union-attr]
     assert np.degrees(np.linalg.norm(d)) > 1.0  # the artefact's bias is there
     assert mahalanobis(d, sol.cov_direction_parent) < 3.0  # type: ignore[union-attr]
