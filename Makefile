@@ -9,7 +9,9 @@ BENCH_STAMP := $(VENV)/.bench-installed
 
 # Keep any ROS traffic from tests, demo and benchmarks on this host.
 ROS_DOMAIN_ID ?= 42
-ROS_ENV := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID=$(ROS_DOMAIN_ID)
+# One BLAS thread per process (jointfit_core sets it too, unless numpy was imported first, as pytest
+# may): the test workers and live nodes share 2 cores (bench/results/blas_threads.md).
+ROS_ENV := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID=$(ROS_DOMAIN_ID) OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
 
 .PHONY: venv lint test attack demo demo-offline bench soak clean
 

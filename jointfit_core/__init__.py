@@ -13,12 +13,23 @@ fit_axis
     section 3).
 """
 
-from .axis import axis_from_moments, fit_axis
-from .errors import InputError, JointfitError, MissingDependencyError, NotIdentifiableError
-from .moments import MarkerMoments, moments_from_markers
-from .results import AxisFit, CentreFit, SegmentsAxisFit, SegmentsCentreFit
-from .segments import fit_axis_two_segments, fit_centre_two_segments
-from .sphere import centre_from_moments, fit_centre
+import os as _os
+
+# One BLAS thread unless the user chose otherwise, set before numpy loads OpenBLAS (it reads these once).
+# jointfit's matrices are small (3x3 per frame; at most a few thousand rows by ~100 columns per solve):
+# threads gain nothing there, and on a shared 2-core machine OpenBLAS threads cost a fit 2-9x its
+# single-thread time in CPU and wall clock (bench/results/blas_threads.md) and take the node's cores
+# from its marker stream. A variable already set (to any value) is kept; a program that imported
+# numpy before jointfit keeps its own setting.
+for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_name, "1")
+
+from .axis import axis_from_moments, fit_axis  # noqa: E402
+from .errors import InputError, JointfitError, MissingDependencyError, NotIdentifiableError  # noqa: E402
+from .moments import MarkerMoments, moments_from_markers  # noqa: E402
+from .results import AxisFit, CentreFit, SegmentsAxisFit, SegmentsCentreFit  # noqa: E402
+from .segments import fit_axis_two_segments, fit_centre_two_segments  # noqa: E402
+from .sphere import centre_from_moments, fit_centre  # noqa: E402
 
 __all__ = [
     "AxisFit",
@@ -39,10 +50,10 @@ __all__ = [
     "moments_from_markers",
 ]
 
-from .chain import ChainJoint, fit_chain, leg_chain_spec, virtual_markers
-from .identifiability import Identifiability, check_marker_counts, marker_count_identifiability
-from .minimal import fit_axis_minimal, fit_centre_minimal, r21_closed_form, s22_closed_form
-from .results import MinimalAxisFit, MinimalCentreFit
+from .chain import ChainJoint, fit_chain, leg_chain_spec, virtual_markers  # noqa: E402
+from .identifiability import Identifiability, check_marker_counts, marker_count_identifiability  # noqa: E402
+from .minimal import fit_axis_minimal, fit_centre_minimal, r21_closed_form, s22_closed_form  # noqa: E402
+from .results import MinimalAxisFit, MinimalCentreFit  # noqa: E402
 
 __all__ += [
     "ChainJoint",
