@@ -448,7 +448,10 @@ def synthetic(kind: str, trials: int, seq: np.random.SeedSequence) -> dict[str, 
                     n_true = rotation_to_estimated_frame(motion.template_parent, tpl) @ motion.axis
                     p_true = to_estimated_frame(motion.template_parent, tpl, motion.centre_parent)
                     st.add(f"{who} err", angle_deg(n_est, n_true))
-                    st.add(f"{who} point", distance_to_line(p_est, p_true, n_true))
+                    # the true centre's distance from the estimated axis line: gauge-free (the distance
+                    # of the estimated point from the true axis depends on where along its axis the
+                    # point lies, SARA's anywhere: the lines are skew)
+                    st.add(f"{who} point", distance_to_line(p_true, p_est, n_est))
                     if who == "jf":
                         signed = n_true if float(n_true @ n_est) >= 0.0 else -n_true
                         st.add("jf e", mahalanobis_rank(n_est - signed, jf.cov_direction_parent, 2) / 2.0)
@@ -667,7 +670,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         "### Hinge: jointfit against SARA",
         "",
-        "Angle error of the direction and distance of the reported point from the true axis, parent frame.",
+        "Angle error of the direction, and distance of the true joint centre from the estimated axis line (the same "
+        "gauge-free measure for both; until 2026-12-02 the distance of each reported point from the true axis, "
+        "which depends on where along its own axis each method puts its point), parent frame.",
         "",
         hinge_md,
         "",
@@ -683,7 +688,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "transformed as a *point* (with the segment translation), so its outlier removal is driven by the "
         "segments' positions rather than by the axis misfit; its axis point uses all singular values "
         "(including the near-zero one of a hinge), so the point lies anywhere along the axis (the tables use "
-        "the distance from the axis, which does not depend on that).",
+        "the true centre's distance from each estimated axis line, which does not depend on that).",
         f"- {aside}",
         "",
         "## Where jointfit is not ahead",

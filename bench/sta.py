@@ -141,7 +141,9 @@ def _trial(rng: np.random.Generator, case: Case) -> dict[str, float]:
         Rp = rotation_to_estimated_frame(motion.template_parent, peer.template_parent)
         pp_true = to_estimated_frame(motion.template_parent, peer.template_parent, motion.centre_parent)
         out["peer"] = angle_deg(peer.direction_parent, Rp @ motion.axis)
-        out["peer point"] = distance_to_line(peer.point_parent, pp_true, Rp @ motion.axis)
+        # the true centre's distance from the estimated axis line, as for jointfit above (the distance of
+        # SARA's point from the true axis depends on where along its own axis that point lies: skew lines)
+        out["peer point"] = distance_to_line(pp_true, peer.point_parent, peer.direction_parent)
         stat = getattr(jf, "cov_direction_parent_statistical", None)
         if stat is not None:
             out["sd stat"] = float(np.degrees(np.sqrt(np.trace(stat))))
@@ -240,7 +242,7 @@ def tables(results: list[tuple[Case, dict[str, list[float]]]]) -> list[str]:
             align="lrrrrrrrrrr",
         ),
         "",
-        "## Knee (hinge): direction (deg) and point (mm, distance from the true axis), thigh frame",
+        "## Knee (hinge): direction (deg) and point (mm, distance of the true knee centre from the estimated axis), thigh frame",
         "",
         markdown_table(
             [
@@ -253,6 +255,9 @@ def tables(results: list[tuple[Case, dict[str, list[float]]]]) -> list[str]:
         "",
         "sd: root mean square over the trials of sqrt(tr cov); (statistical): the part from white marker "
         "noise and the residuals, without the soft-tissue prior (`-` where the fit does not report it). "
+        "point error, SARA point: the true centre's distance from each method's estimated axis line (until "
+        "2026-12-02 SARA's was the distance of its point from the true axis, which depends on where along its "
+        "axis SARA puts the point and under-read its error at the knee centre by ~10 %). "
         "Hinge point e/2: the off-axis part of the point error against the point covariance projected on the "
         "plane normal to the estimated axis (until 2026-12-02 against its two largest eigen-directions, which mix in "
         "the point's slide along the axis and under-read the calibration about 2-3x). refused: trials the fit rejected (InputError: e.g. no well-posed frames when the "
