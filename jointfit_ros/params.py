@@ -434,11 +434,13 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec(
         "attachment",
         "string",
-        "skin",
+        "auto",
         "How both segments' markers are attached: skin (markers or clusters on the skin: the covariance adds a "
         "soft-tissue-artefact part that does not shrink with the window) or rigid (markers on rigid bodies, "
-        "robots, bone pins, rigid-body pose inputs, the fake mocap).",
-        choices=("skin", "rigid"),
+        "robots, bone pins, rigid-body pose inputs, the fake mocap); auto: rigid when both segments are pose "
+        "topics (rigid-body inputs), else skin. A rigid body tracked on a skin-mounted plate or strap is skin: "
+        "set it.",
+        choices=("auto", "skin", "rigid"),
     ),
     ParamSpec(
         "calibration_file",
@@ -784,8 +786,16 @@ def _joint_config(
         anatomical=anatomical,
         target_sd=v["target_sd"],
         auto_freeze=v["auto_freeze"],
-        attachment=v["attachment"],
+        attachment=_attachment(v),
     )
+
+
+def _attachment(v: Mapping[str, Any]) -> str:
+    """``<joint>.attachment`` resolved: ``auto`` is rigid for two pose topics (rigid-body inputs), else skin."""
+    value = str(v["attachment"])
+    if value != "auto":
+        return value
+    return "rigid" if v["parent_pose_topic"] and v["child_pose_topic"] else "skin"
 
 
 def _anatomical(name: str, v: Mapping[str, Any], known: set[str]) -> tuple[tuple[str, str], ...]:

@@ -95,6 +95,28 @@ def test_a_pose_topic_segment_is_the_joints_pose_topic() -> None:
 
 
 @pytest.mark.parametrize(
+    ("pose_topics", "given", "expected"),
+    [
+        ((), "auto", "skin"),  # marker clusters: skin
+        (("thigh",), "auto", "skin"),  # one side on the skin is enough for its artefact
+        (("pelvis", "thigh"), "auto", "rigid"),  # two rigid-body pose inputs (issue 17 item 3)
+        (("pelvis", "thigh"), "skin", "skin"),  # a rigid body on a skin-mounted plate: as set
+        ((), "rigid", "rigid"),
+    ],
+)
+def test_attachment_auto_is_rigid_for_two_pose_topics_only(pose_topics: tuple[str, ...], given: str, expected: str) -> None:
+    change: dict[str, Any] = {}
+    for seg in pose_topics:
+        change |= {f"{seg}.markers": None, f"{seg}.pose_topic": f"/{seg}/pose"}
+    values = _segment_form(**change)
+    values["joints"] = ["hip"]
+    values = {k: v for k, v in values.items() if not k.startswith("knee.")}
+    if given != "auto":
+        values["hip.attachment"] = given
+    assert node_config(values).joints[0].attachment == expected
+
+
+@pytest.mark.parametrize(
     ("change", "message"),
     [
         ({"hip.parent": "pelvic"}, r"hip\.parent: 'pelvic' is not in segments \['pelvis', 'thigh', 'shank'\]"),
