@@ -46,6 +46,7 @@ is a run of its own.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Any
 
@@ -280,7 +281,7 @@ class ShapeTrack:
 
     def passed(self, index: NDArray[np.intp], local: FloatArray, frame_no: int, jump: float, code: int) -> None:
         """The segment passed with markers ``index`` posed at ``local``: they become the references."""
-        if np.isfinite(jump):
+        if math.isfinite(jump):
             self.history.append(jump)
         self.ref[index] = local
         self.at[index] = frame_no
