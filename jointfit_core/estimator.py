@@ -31,7 +31,7 @@ from .artefact_sums import (
     artefact_from_sums,
     ball_parameters,
     feature_sums,
-    feature_sums_one,
+    feature_sums_into,
     hinge_parameters,
 )
 from .calibration import fit_from_dict, fit_to_dict
@@ -994,6 +994,8 @@ class OnlineJoint:
         self._tl_view = self._contribution[_TL]
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
+        self._fs_view = self._contribution[_FS]  # the soft-tissue feature sums, then (skin hinges) their moments
+        self._fm_view = self._contribution[_FM] if self._moments else None
         self._serial: SerialInflation | None = None
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
@@ -1887,9 +1889,7 @@ class OnlineJoint:
                 self._c_pairs = ps
             c[_SS : _SS + 4 : 2] = ss
             if self._skin:
-                fsum = feature_sums_one(z, self._moments)
-                c[_FS] = fsum[:N_FEATURE_SUMS]
-                c[_N_SUMS:] = fsum[N_FEATURE_SUMS:]
+                feature_sums_into(z, self._fs_view, self._fm_view)
             # The lag pair (previous frame in the statistics, this one), stored with this frame.
             if self._prev_in:
                 c[_LAG] = 1.0
