@@ -2174,7 +2174,7 @@ class OnlineJoint:
                 assert isinstance(sol, PoseSumsAxis)
                 axis_c = Rc @ sol.direction_child
                 diff = diff - axis_c * (diff @ axis_c)
-            residual = float(np.sqrt(diff @ diff))
+            residual = math.sqrt(float(diff @ diff))  # (the same correctly rounded square root as np.sqrt)
             Q = Rp.T @ Rc
             # the poses' rotation errors (local frames) as one left perturbation of Q (joint_angles.relative_rotation_cov)
             Q_cov = rot_cov_parent + self._sigma[1] ** 2 * (Q @ vc.W_unit[:3, :3] @ Q.T)

@@ -119,7 +119,8 @@ def _check_cov(cov: ArrayLike, name: str, n: int = 3) -> FloatArray:
     arr = cov if isinstance(cov, np.ndarray) and cov.dtype == np.float64 else np.asarray(cov, dtype=np.float64)
     if arr.shape != (n, n):
         raise ConversionError(f"{name}: expected shape ({n}, {n}), got shape {arr.shape}")
-    if not np.isfinite(arr).all():
+    # (a finite sum of the entries means all are finite; else the exact test: the sum may overflow)
+    if not math.isfinite(sum(arr.ravel().tolist())) and not np.isfinite(arr).all():
         raise ConversionError(f"{name}: expected finite values, got {arr.tolist()}")
     return arr
 
