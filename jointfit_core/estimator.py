@@ -1743,11 +1743,13 @@ class OnlineJoint:
         local: list[FloatArray | None] = [None, None]
         jumps = [np.inf, np.inf]
         fails = [False, False]
+        Y = self._Y
         for k, vs in enumerate((ps.parent, ps.child)):
             if vs is not None:
-                local[k], jumps[k], fails[k] = self._tracker(k).shape_test(
-                    self._Y[k, vs.index], vs, R[k], d[k], float(ss[k]), frame_no, refit
-                )
+                seg = self._tracker(k)
+                n = vs.index.size
+                y = Y[k, :n] if n == seg.n_markers else Y[k, vs.index]  # all visible: its rows as they are
+                local[k], jumps[k], fails[k] = seg.shape_test(y, vs, R[k], d[k], float(ss[k]), frame_no, refit)
         return local, jumps, fails
 
     def _seen(self, ps: _PairSet, local: list[FloatArray | None], frame_no: int) -> None:
