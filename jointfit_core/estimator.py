@@ -31,7 +31,7 @@ from .artefact_sums import (
     artefact_from_sums,
     ball_parameters,
     feature_sums,
-    feature_sums_one,
+    feature_sums_into,
     hinge_parameters,
 )
 from .calibration import fit_from_dict, fit_to_dict
@@ -982,6 +982,7 @@ class OnlineJoint:
         self.frame_poses: tuple[FloatArray, FloatArray, tuple[bool, bool]] | None = None
         self._contribution = np.zeros(self._n_sums)
         self._contribution[0] = 1.0
+        self._c_pairs: _PairSet | None = None  # the pair set whose W and dofs the contribution holds
         # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
         self._z_view = self._contribution[_Z].reshape(3, 4)
         self._zf_view = self._contribution[_Z]
@@ -993,6 +994,8 @@ class OnlineJoint:
         self._tl_view = self._contribution[_TL]
         self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
         self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
+        self._fs_view = self._contribution[_FS]  # the soft-tissue feature sums, then (skin hinges) their moments
+        self._fm_view = self._contribution[_FM] if self._moments else None
         self._serial: SerialInflation | None = None
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
@@ -1010,7 +1013,7 @@ class OnlineJoint:
         self._Y = np.zeros((0, 0, 3))
         self._none_missing: NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
         self._missing: NDArray[np.bool_] = self._none_missing
-        self._world_cache: dict[bytes, tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]] = {}
+        self._world_cache: dict[bytes, tuple[FloatArray, FloatArray, FloatArray, FloatArray | None, FloatArray]] = {}
         tp, tc = self._templates_arg
         if tp is not None or tc is not None:
             assert self.n_markers is not None
@@ -1740,11 +1743,13 @@ class OnlineJoint:
         local: list[FloatArray | None] = [None, None]
         jumps = [np.inf, np.inf]
         fails = [False, False]
+        Y = self._Y
         for k, vs in enumerate((ps.parent, ps.child)):
             if vs is not None:
-                local[k], jumps[k], fails[k] = self._tracker(k).shape_test(
-                    self._Y[k, vs.index], vs, R[k], d[k], float(ss[k]), frame_no, refit
-                )
+                seg = self._tracker(k)
+                n = vs.index.size
+                y = Y[k, :n] if n == seg.n_markers else Y[k, vs.index]  # all visible: its rows as they are
+                local[k], jumps[k], fails[k] = seg.shape_test(y, vs, R[k], d[k], float(ss[k]), frame_no, refit)
         return local, jumps, fails
 
     def _seen(self, ps: _PairSet, local: list[FloatArray | None], frame_no: int) -> None:
@@ -1880,13 +1885,13 @@ class OnlineJoint:
             np.matmul(R[0].T, x, out=z)  # [Q | t] = R_p^T [R_c | d_c - d_p]
             zf = self._zf_view
             np.multiply.outer(zf, zf, out=self._outer_view)
-            c[_W] = ps.W_flat
+            if ps is not self._c_pairs:  # (the pose covariances and dofs are the pair set's: written when it changes)
+                c[_W] = ps.W_flat
+                c[_SS + 1 : _SS + 4 : 2] = ps.dof
+                self._c_pairs = ps
             c[_SS : _SS + 4 : 2] = ss
-            c[_SS + 1 : _SS + 4 : 2] = ps.dof
             if self._skin:
-                fsum = feature_sums_one(z, self._moments)
-                c[_FS] = fsum[:N_FEATURE_SUMS]
-                c[_N_SUMS:] = fsum[N_FEATURE_SUMS:]
+                feature_sums_into(z, self._fs_view, self._fm_view)
             # The lag pair (previous frame in the statistics, this one), stored with this frame.
             if self._prev_in:
                 c[_LAG] = 1.0
@@ -2151,9 +2156,10 @@ class OnlineJoint:
             if isinstance(sol, PoseSumsAxis):
                 Nx = skew(sol.direction_parent)
                 cov_dir = sol.cov_direction_parent + s2 * (Nx @ vp.W_unit[:3, :3] @ Nx.T)
-            cached = (local, local_cov + s2 * (J @ vp.W_unit @ J.T), other, cov_dir)
+            # (the parent's part of the rotation's covariance, below, is this visible set's too)
+            cached = (local, local_cov + s2 * (J @ vp.W_unit @ J.T), other, cov_dir, s2 * vp.W_unit[:3, :3])
             self._world_cache[key] = cached
-        local, cov_local, other, cov_dir_local = cached
+        local, cov_local, other, cov_dir_local, rot_cov_parent = cached
         position = Rp @ local + dp
         cov = Rp @ cov_local @ Rp.T
         residual = float("nan")
@@ -2170,10 +2176,10 @@ class OnlineJoint:
                 assert isinstance(sol, PoseSumsAxis)
                 axis_c = Rc @ sol.direction_child
                 diff = diff - axis_c * (diff @ axis_c)
-            residual = float(np.sqrt(diff @ diff))
+            residual = math.sqrt(float(diff @ diff))  # (the same correctly rounded square root as np.sqrt)
             Q = Rp.T @ Rc
             # the poses' rotation errors (local frames) as one left perturbation of Q (joint_angles.relative_rotation_cov)
-            Q_cov = self._sigma[0] ** 2 * vp.W_unit[:3, :3] + self._sigma[1] ** 2 * (Q @ vc.W_unit[:3, :3] @ Q.T)
+            Q_cov = rot_cov_parent + self._sigma[1] ** 2 * (Q @ vc.W_unit[:3, :3] @ Q.T)
         return JointOutput(self.kind, position, cov, direction, cov_dir, residual, Q, Q_cov)
 
     # ------------------------------------------------------------------ calibration

@@ -46,6 +46,7 @@ is a run of its own.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Any
 
@@ -215,6 +216,11 @@ class ShapeTrack:
         self.last_code = np.zeros(n_markers, dtype=np.int64)
         self.confirmed = False  # a frame has passed since the start
         self.history: deque[float] = deque(seed or (), maxlen=GATE_HISTORY_FRAMES)
+        # The latest write of the references (and of ``last``), as (frame number, code): every marker of
+        # that code has its reference from that frame and that fit until the next write. (0, -1): not
+        # known. :meth:`jump`'s shortcut for a frame of the same markers (the usual frame).
+        self._ref_write = (0, -1)
+        self._last_write = (0, -1)
 
     def normal_jump(self, sigma: float, floor: float) -> float:
         """The segment's normal jump (input units squared).
@@ -239,7 +245,20 @@ class ShapeTrack:
         """:func:`frame_jumps` of one frame whose markers ``index`` (fit ``code``) are posed at ``local`` (n, 3).
 
         ``last``: against the previous frame seen (:meth:`seen`) instead of the references.
+
+        A frame of the markers of the latest write (:meth:`passed`, :meth:`failed`, :meth:`seen`)
+        takes a shortcut: all its references come from that frame and fit, so the freshness and
+        code tests are one comparison (the same numbers as the general path, tested).
         """
+        written_at, written_code = self._last_write if last else self._ref_write
+        if code == written_code:
+            since = frame_no - written_at
+            if written_at > 0 and since <= GATE_JUMP_GAP_CAP:  # all fresh, all of this fit
+                if index.size < 3:
+                    return np.inf, False
+                change = local - (self.last if last else self.ref)[index]
+                return float((np.einsum("pi,pi->p", change, change) / since).max()), False
+            return np.inf, bool(index.size)  # none fresh
         ref, at, ref_code = (self.last, self.last_at, self.last_code) if last else (self.ref, self.at, self.code)
         gap = frame_no - at[index]
         fresh = (at[index] > 0) & (gap <= GATE_JUMP_GAP_CAP)
@@ -247,24 +266,27 @@ class ShapeTrack:
         stale = bool(n < index.size)
         if n < 3:
             return np.inf, stale
-        if (ref_code[index[fresh]] != code).any():  # references from another fit: aligned first (rare)
-            p = len(self.ref)
-            full = np.zeros((1, p, 3))
+        rows = index[fresh]
+        if (ref_code[rows] != code).any():  # references from another fit: aligned first (after an occlusion)
+            # frame_jumps of this one frame: the same alignment (_aligned of the whole marker set, the
+            # markers without a fresh reference weighted 0) and the same jump, without the block's masks
+            full = np.zeros((1, len(self.ref), 3))
             full[0, index] = local
-            vis = np.zeros((1, p), dtype=bool)
-            vis[0, index] = True
-            jump, st = frame_jumps(full, vis, ref[None], at[None], ref_code[None], np.array([frame_no]))
-            return float(jump[0]), bool(st[0])
-        diff = local[fresh] - ref[index[fresh]]
+            weight = np.zeros((1, len(self.ref)), dtype=bool)
+            weight[0, rows] = True
+            diff = local[fresh] - _aligned(ref[None], full, weight)[0, rows]
+            return float((np.einsum("pi,pi->p", diff, diff) / gap[fresh]).max()), stale
+        diff = local[fresh] - ref[rows]
         return float((np.einsum("pi,pi->p", diff, diff) / gap[fresh]).max()), stale
 
     def passed(self, index: NDArray[np.intp], local: FloatArray, frame_no: int, jump: float, code: int) -> None:
         """The segment passed with markers ``index`` posed at ``local``: they become the references."""
-        if np.isfinite(jump):
+        if math.isfinite(jump):
             self.history.append(jump)
         self.ref[index] = local
         self.at[index] = frame_no
         self.code[index] = code
+        self._ref_write = (frame_no, code)
         self.confirmed = True
 
     def failed(self, index: NDArray[np.intp], local: FloatArray, frame_no: int, code: int) -> None:
@@ -273,12 +295,14 @@ class ShapeTrack:
             self.ref[index] = local
             self.at[index] = frame_no
             self.code[index] = code
+            self._ref_write = (frame_no, code)
 
     def seen(self, index: NDArray[np.intp], local: FloatArray, frame_no: int, code: int) -> None:
         """Markers ``index`` posed at ``local`` in frame ``frame_no``, passed or not (before the gate)."""
         self.last[index] = local
         self.last_at[index] = frame_no
         self.last_code[index] = code
+        self._last_write = (frame_no, code)
 
     def block_references(
         self, local: FloatArray, vis: NDArray[np.bool_], numbers: NDArray[np.int64], last: bool = False
@@ -316,6 +340,7 @@ class ShapeTrack:
         self.ref[seen] = self.last[seen] = local[latest[seen], np.flatnonzero(seen)]
         self.at[seen] = self.last_at[seen] = numbers[latest[seen]]
         self.code[seen] = self.last_code[seen] = codes[latest[seen]]
+        self._ref_write = self._last_write = (0, -1)  # markers from different frames: no shortcut
         self.confirmed = True
 
 

@@ -113,7 +113,7 @@ def joint_residuals(z: FloatArray, res: JointResidual) -> FloatArray:
         out: FloatArray = carried
         return out
     u = res.u
-    across = carried - np.outer(carried @ u, u)
+    across = carried - np.multiply.outer(carried @ u, u)  # (np.outer's products, without its Python wrapper)
     turn = res.length * (Q @ res.v - u)
     return np.concatenate([turn, across], axis=1)
 

@@ -27,6 +27,8 @@ rows are frozen), so a frame gives the same result in any block.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -294,13 +296,20 @@ def rotations_from_correlations(S: FloatArray, bound: FloatArray) -> tuple[Float
     m = S.shape[0]
     Nt = (HORN_A @ S.reshape(m, 9).T).reshape(4, 4, m)
     if m <= EIGH_BELOW:  # a few pairs (a frame's gate): LAPACK beats the ~100 array operations of the closed form
-        w, v = np.linalg.eigh(np.moveaxis(Nt, 2, 0))
+        w, v = _eigh(np.moveaxis(Nt, 2, 0))
         lam, q = w[:, 3], v[:, :, 3].T
     else:
         lam, q = largest_eigenpair_entries(Nt, S, bound)
     R = (HORN_B @ (q[:, None, :] * q[None, :, :]).reshape(16, m)).T.reshape(m, 3, 3)
     return R, lam
 
+
+try:  # the gufunc behind np.linalg.eigh (the same LAPACK call, the same numbers), without its Python-level checks
+    from numpy.linalg import _umath_linalg
+
+    _eigh: Any = _umath_linalg.eigh_lo
+except (ImportError, AttributeError):  # pragma: no cover - other numpy versions
+    _eigh = np.linalg.eigh
 
 #: Up to this many pairs :func:`rotations_from_correlations` takes ``numpy.linalg.eigh`` (the same
 #: eigenpair to a few ulp, tested): the closed form pays off on many pairs at once.

@@ -527,11 +527,9 @@ class LagHistory:
             self._z[n] = z.reshape(12)
             self._n = n + 1
             T.append(time)
-        out.fill(0.0)
         if n == 0:
+            out.fill(0.0)
             return
-        out[0] = 1.0
-        out[1] = time - T[n - 1]
         ptr = self._ptr
         rows: list[int] = []
         gaps: list[float] = []
@@ -551,18 +549,21 @@ class LagHistory:
                 rows.append(p)
                 gaps.append(gap)
                 lags.append(j)
+        every = len(rows) == len(self._lags)  # (the usual frame: its pairs are all of out's blocks, written in place)
+        if not every:
+            out.fill(0.0)
+        out[0] = 1.0
+        out[1] = time - T[n - 1]
         if not rows:
             return
         prev = self._z[rows].reshape(-1, 3, 4)
-        vals = self._vals[: len(rows)]
+        blocks = out[2:].reshape(len(self._lags), _NODE)
+        vals = blocks if every else self._vals[: len(rows)]
         vals[:, 0] = 1.0
         vals[:, 1:13] = (prev + z).reshape(-1, 12)
         vals[:, 13:29] = np.matmul(z.T, prev).reshape(-1, 16)
         vals[:, 29] = gaps
-        blocks = out[2:].reshape(len(self._lags), _NODE)
-        if len(rows) == len(self._lags):
-            blocks[...] = vals
-        else:
+        if not every:
             blocks[lags] = vals
 
     def contributions(self, times: FloatArray, z: FloatArray, out: FloatArray) -> None:

@@ -137,14 +137,30 @@ def widened_output(out: JointOutput, lever: float) -> JointOutput:
     return replace(out, cov=cov, cov_direction=cov_direction)
 
 
+def _all_finite(a: FloatArray | None) -> bool:
+    """Whether ``a`` exists and all its entries are finite.
+
+    The sum of the entries (Python floats, a few of them) is finite only when every entry is
+    (a NaN or an infinity makes it NaN or infinite); a sum that overflows from finite entries
+    takes the exact test. Cheaper than ``np.isfinite(a).all()`` on the 3- and 9-entry arrays of an
+    output (per-frame path).
+    """
+    if a is None:
+        return False
+    return math.isfinite(sum(a.ravel().tolist())) or bool(np.isfinite(a).all())
+
+
 def output_sane(out: JointOutput, limit: float) -> bool:
     """Whether an output may be published: finite, within ``limit`` (input units; inf: :data:`ABSURD_OUTPUT`), its sd below it."""
-    arrays = [out.position, out.cov] + ([out.direction, out.cov_direction] if out.direction is not None else [])
-    if not all(a is not None and np.isfinite(a).all() for a in arrays):
+    if not (_all_finite(out.position) and _all_finite(out.cov)):
+        return False
+    if out.direction is not None and not (_all_finite(out.direction) and _all_finite(out.cov_direction)):
         return False
     if not math.isfinite(limit):
         limit = ABSURD_OUTPUT
-    return bool(np.abs(out.position).max() <= limit and np.diag(out.cov).max() <= limit**2)
+    x, y, z = out.position.tolist()
+    c = out.cov.ravel().tolist()
+    return max(abs(x), abs(y), abs(z)) <= limit and max(c[0], c[4], c[8]) <= limit**2
 
 
 #: Fully visible frames compared with a loaded calibration's templates (:meth:`JointRunner._check_layout`).
@@ -266,6 +282,12 @@ class JointRunner:
         self._toward_row = node.marker_index(cfg.axis_toward_marker) if cfg.axis_toward_marker else -1
         self._from_row = node.marker_index(cfg.axis_from_marker) if cfg.axis_from_marker else -1
         self._cluster_rows = np.concatenate([self.parent_rows, self.child_rows])
+        # where each segment starts in the gathered clusters (_compact), when both have markers
+        self._compact_starts = (
+            np.array([0, len(self.parent_rows)], dtype=np.intp) if len(self.parent_rows) and len(self.child_rows) else None
+        )
+        self._limit_node: NodeConfig | None = None
+        self._limit = math.inf
         self.estimator = self._new_estimator()
         #: What auto_freeze calls to save (returns the path written, in words): :meth:`save` with a
         #: calibration_file, else None; the node's calibration file sets its own.
@@ -583,9 +605,11 @@ class JointRunner:
         drags the mean of its segment, so its neighbours may go with it in
         that frame: the segment is then not posed there.
         """
-        limit = workspace_limit(self.node)
+        limit = self._workspace_limit()
         scale = ABSURD_RADII * self.estimator.length_scale
         out: NDArray[np.bool_] | None = None
+        if not math.isfinite(limit) and self._compact(frames, scale):
+            return frames
         with np.errstate(invalid="ignore", over="ignore"):
             if math.isfinite(limit):
                 out = np.asarray((np.abs(frames[..., self._cluster_rows, :]) > limit).any(axis=-1))
@@ -622,6 +646,28 @@ class JointRunner:
             "treated as missing"
         )
         return frames
+
+    def _compact(self, frames: FloatArray, scale: float) -> bool:
+        """Whether every segment of ``frames`` (..., P, 3) spans at most ``scale`` per coordinate (no absurd marker).
+
+        The usual frame's test of :meth:`_in_workspace` (no marker far from its segment's mean
+        when the segment's extent is within the limit), for both segments of markers at once:
+        one gather and one ``reduceat`` per bound instead of two per segment. False when it does
+        not settle it (a segment without markers, no templates yet, no frames, a wide segment
+        or an all-missing coordinate): the segment-by-segment test then decides.
+        """
+        if not (scale > 0.0 and self._compact_starts is not None and frames.size):
+            return False
+        y = frames[..., self._cluster_rows, :]
+        with np.errstate(invalid="ignore", over="ignore"):
+            spread = np.fmax.reduceat(y, self._compact_starts, axis=-2) - np.fmin.reduceat(y, self._compact_starts, axis=-2)
+            return bool((spread <= scale).all())
+
+    def _workspace_limit(self) -> float:
+        """:func:`workspace_limit` of the node's configuration (kept while :attr:`node` is the same object)."""
+        if self._limit_node is not self.node:
+            self._limit_node, self._limit = self.node, workspace_limit(self.node)
+        return self._limit
 
     @staticmethod
     def _with_chain(markers: FloatArray, names: tuple[str, ...], chain: dict[str, FloatArray]) -> FloatArray:
@@ -681,7 +727,7 @@ class JointRunner:
         sol = self.estimator.solution
         if sol is not None and not sol.identifiable:
             out = widened_output(out, max(self.estimator.length_scale, _lever(sol)))
-        if not output_sane(out, workspace_limit(self.node)):
+        if not output_sane(out, self._workspace_limit()):
             self.counters["absurd_outputs"] += 1
             self.last_error = f"output withheld: non-finite or beyond the workspace (position {out.position.tolist()})"
             return None
