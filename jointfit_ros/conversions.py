@@ -9,7 +9,6 @@ covariance, visualisation markers, diagnostics and stamps.
 
 from __future__ import annotations
 
-import math
 import struct
 from collections.abc import Mapping, Sequence
 
@@ -20,6 +19,8 @@ from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from numpy.typing import ArrayLike, NDArray
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
+
+from jointfit_core.checks import small_all_finite
 
 from .raw import (
     _NS_PER_S,
@@ -119,8 +120,7 @@ def _check_cov(cov: ArrayLike, name: str, n: int = 3) -> FloatArray:
     arr = cov if isinstance(cov, np.ndarray) and cov.dtype == np.float64 else np.asarray(cov, dtype=np.float64)
     if arr.shape != (n, n):
         raise ConversionError(f"{name}: expected shape ({n}, {n}), got shape {arr.shape}")
-    # (a finite sum of the entries means all are finite; else the exact test: the sum may overflow)
-    if not math.isfinite(sum(arr.ravel().tolist())) and not np.isfinite(arr).all():
+    if not small_all_finite(arr):
         raise ConversionError(f"{name}: expected finite values, got {arr.tolist()}")
     return arr
 
@@ -165,9 +165,9 @@ def pose_with_covariance_bytes(
     against rclpy's serializer in the tests).
     """
     pos = _vector3(position, "position")
-    c = _check_cov_fast(cov, "cov")
+    c = _check_cov(cov, "cov").tolist()
     quat = _IDENTITY_XYZW if orientation_xyzw is None else _unit_quaternion(orientation_xyzw)
-    r = _UNKNOWN_ROTATION_COV_ROWS if orientation_cov is None else _check_cov_fast(orientation_cov, "orientation_cov")
+    r = _UNKNOWN_ROTATION_COV_ROWS if orientation_cov is None else _check_cov(orientation_cov, "orientation_cov").tolist()
     z = _ZERO3
     # the 6 x 6 covariance of _pose_parts, row by row, as Python floats (the same numbers, fewer numpy calls)
     c6 = [*c[0], *z, *c[1], *z, *c[2], *z, *z, *r[0], *z, *r[1], *z, *r[2]]
@@ -179,21 +179,6 @@ def pose_with_covariance_bytes(
 
 _ZERO3 = [0.0, 0.0, 0.0]
 _UNKNOWN_ROTATION_COV_ROWS = _UNKNOWN_ROTATION_COV.tolist()
-
-
-def _check_cov_fast(cov: ArrayLike, name: str) -> list[list[float]]:
-    """:func:`_check_cov` (3 x 3) as rows of Python floats (the per-frame output path).
-
-    The sum of the entries is finite only when every entry is; a sum that overflows from
-    finite entries takes :func:`_check_cov`'s test (which then passes).
-    """
-    rows: list[list[float]]
-    if isinstance(cov, np.ndarray) and cov.shape == (3, 3) and cov.dtype == np.float64:
-        rows = cov.tolist()
-        if math.isfinite(sum(rows[0]) + sum(rows[1]) + sum(rows[2])):
-            return rows
-    rows = _check_cov(cov, name).tolist()
-    return rows
 
 
 def axis_pose_bytes(

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from jointfit_core.atomic import remove_stale_temporaries
 from jointfit_core.axis_sign import SIGN_SD_MAX_DEG, direction_sd_deg, hinge_sign
 from jointfit_core.calibration import load_calibration, save_calibration
+from jointfit_core.checks import small_all_finite
 from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
 from jointfit_core.estimator import (
     JointOutput,
@@ -137,24 +138,13 @@ def widened_output(out: JointOutput, lever: float) -> JointOutput:
     return replace(out, cov=cov, cov_direction=cov_direction)
 
 
-def _all_finite(a: FloatArray | None) -> bool:
-    """Whether ``a`` exists and all its entries are finite.
-
-    The sum of the entries (Python floats, a few of them) is finite only when every entry is
-    (a NaN or an infinity makes it NaN or infinite); a sum that overflows from finite entries
-    takes the exact test. Cheaper than ``np.isfinite(a).all()`` on the 3- and 9-entry arrays of an
-    output (per-frame path).
-    """
-    if a is None:
-        return False
-    return math.isfinite(sum(a.ravel().tolist())) or bool(np.isfinite(a).all())
-
-
 def output_sane(out: JointOutput, limit: float) -> bool:
     """Whether an output may be published: finite, within ``limit`` (input units; inf: :data:`ABSURD_OUTPUT`), its sd below it."""
-    if not (_all_finite(out.position) and _all_finite(out.cov)):
+    if not (small_all_finite(out.position) and small_all_finite(out.cov)):
         return False
-    if out.direction is not None and not (_all_finite(out.direction) and _all_finite(out.cov_direction)):
+    if out.direction is not None and not (
+        out.cov_direction is not None and small_all_finite(out.direction) and small_all_finite(out.cov_direction)
+    ):
         return False
     if not math.isfinite(limit):
         limit = ABSURD_OUTPUT
