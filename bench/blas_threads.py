@@ -30,6 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine, markdown_table, save_results
 
+from jointfit_core import BLAS_THREAD_VARIABLES
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results" / "blas_threads.md"
 REPEATS = 5
@@ -62,7 +64,7 @@ def _spin(stop: float) -> None:
 
 def _run(threads: int) -> dict[str, tuple[float, float]]:
     env = dict(os.environ, PYTHONPATH=f"{ROOT}:{ROOT / 'test'}")
-    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    for name in BLAS_THREAD_VARIABLES:
         env[name] = str(threads)
     code = CHILD.replace("REPEATS", str(REPEATS))
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)

@@ -21,7 +21,9 @@ import os as _os
 # single-thread time in CPU and wall clock (bench/results/blas_threads.md) and take the node's cores
 # from its marker stream. A variable already set (to any value) is kept; a program that imported
 # numpy before jointfit keeps its own setting.
-for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+#: The environment variables that set the BLAS libraries' thread counts (OpenBLAS, OpenMP, MKL).
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+for _name in BLAS_THREAD_VARIABLES:
     _os.environ.setdefault(_name, "1")
 
 from .axis import axis_from_moments, fit_axis  # noqa: E402
@@ -32,6 +34,7 @@ from .segments import fit_axis_two_segments, fit_centre_two_segments  # noqa: E4
 from .sphere import centre_from_moments, fit_centre  # noqa: E402
 
 __all__ = [
+    "BLAS_THREAD_VARIABLES",
     "AxisFit",
     "CentreFit",
     "InputError",

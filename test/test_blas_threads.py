@@ -9,8 +9,10 @@ from pathlib import Path
 
 import pytest
 
+from jointfit_core import BLAS_THREAD_VARIABLES
+
 ROOT = Path(__file__).resolve().parent.parent
-VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+VARS = BLAS_THREAD_VARIABLES
 
 
 def _after_import(module: str, preset: dict[str, str]) -> list[str]:
