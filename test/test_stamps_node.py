@@ -154,6 +154,13 @@ def _count(client: _Client, name: str, key: str) -> int:
     return int(client.status(name).get(key, "0"))
 
 
+def _node_counts(client: _Client, name: str) -> tuple[int, int]:
+    """(frames received, outputs published) of a joint, or (messages, 0) of the input, from its last status."""
+    if name == "input":
+        return _count(client, name, "messages"), 0
+    return _count(client, name, "frames received"), _count(client, name, "outputs")
+
+
 def _with_nanosec(raw: bytes, nanosec: int) -> bytes:
     """A message with its header.stamp.nanosec replaced (bytes 8-12: after the encapsulation and sec)."""
     return raw[:8] + nanosec.to_bytes(4, "little") + raw[12:]
@@ -211,16 +218,26 @@ def test_a_replay_looping_to_its_start_is_followed(rig: tuple[_Client, Any, Any]
     assert client.spin_until(lambda: client.status("knee").get("message", "").startswith("estimating"), 10.0), (
         client.status("knee")
     )
+    client.spin_until(lambda: False, 0.5)  # a status from after the first pass
+    before = {name: _node_counts(client, name) for name in ("hip", "knee", "input")}
     _stream(client, rigs, 0.0, 1.5)  # the bag again from its start: the same stamps
     assert client.spin_until(lambda: _count(client, "input", "timeline restarts") == 1, 5.0), client.status("input")
     assert _level(client, "hip") == OK and _level(client, "knee") == OK, (client.status("hip"), client.status("knee"))
     assert _input_ok_but_for_lost_frames(client), client.status("input")
-    client.spin_until(lambda: False, 0.3)  # the last outputs in
+    client.spin_until(lambda: False, 0.5)  # the last outputs in, and a status from after the replay
     replay_hip, replay_knee = _second_pass(client.hip), _second_pass(client.knee)
     # recognised within a few frames: the frozen hip publishes from then on, with the replay's own stamps
     assert replay_hip and _stamp_s(replay_hip[0]) <= T0 + (RESTART_FRAMES + 2) * PERIOD, _stamp_s(replay_hip[0])
-    assert len(replay_hip) >= 0.9 * 1.5 * RATE, len(replay_hip)  # (best effort: a few may be lost)
-    assert len(replay_knee) >= 0.9 * 1.5 * RATE, len(replay_knee)
+    # In the node: an output for every replayed frame it received, but the few before the restart was recognised.
+    # The frames and outputs lost on the way (keep-last queues on a loaded machine) are counted apart, each < 10 %.
+    sent = int(1.5 * RATE)
+    received = _node_counts(client, "input")[0] - before["input"][0]
+    assert sent - received <= 0.1 * sent, (sent, received)  # (a machine that loses more is too loaded for this test)
+    for name, outputs in (("hip", replay_hip), ("knee", replay_knee)):
+        frames, published = (now - was for now, was in zip(_node_counts(client, name), before[name], strict=True))
+        assert frames == received, (name, frames, received)
+        assert published >= frames - RESTART_FRAMES - 1, (name, published, frames)
+        assert published >= len(outputs) >= 0.9 * published, (name, len(outputs), published)
     # the knee goes on estimating: its 2 s window slid on over the loop (it holds frames of both passes)
     client.spin_until(lambda: False, 0.3)  # a status from after the stream
     knee = client.status("knee")
