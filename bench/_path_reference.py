@@ -5,9 +5,9 @@ run it once on the code before the change (``--save``) and once after (``--compa
 
 Run from the repository root with ``PYTHONPATH=.:test``::
 
-    python bench/_path_reference.py --save /tmp/ref_skin.npz
-    python bench/_path_reference.py --compare /tmp/ref_skin.npz
-    python bench/_path_reference.py --attachment rigid --save /tmp/ref_rigid.npz
+    python bench/_path_reference.py --save /tmp/ref_skin.npy
+    python bench/_path_reference.py --compare /tmp/ref_skin.npy
+    python bench/_path_reference.py --attachment rigid --save /tmp/ref_rigid.npy
 
 What is recorded: the stream of ``bench/skeleton.py`` (the full skeleton, seed 0, 0.5 mm noise, 2 %
 occluded markers, 100 Hz), :data:`FRAMES` frames; the 12 joints' :class:`~skeleton._Path` warmed up

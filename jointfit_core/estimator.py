@@ -25,13 +25,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .artefact import check_attachment
 from .artefact_sums import (
-    N_FEATURE_MOMENTS,
-    N_FEATURE_SUMS,
     SumsArtefact,
     artefact_from_sums,
     ball_parameters,
-    feature_sums,
-    feature_sums_into,
     hinge_parameters,
 )
 from .calibration import fit_from_dict, fit_to_dict
@@ -40,6 +36,18 @@ from .errors import InputError
 from .gate import BlockJumps
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
 from .joint_gate import JointTrack
+from .joint_sums import (
+    _FM,
+    _FS,
+    _LAG,
+    _MOVE,
+    _SS,
+    _TL,
+    _W,
+    _Z,
+    _ZZ,
+    RelativePoseSums,
+)
 from .pose import MIN_POSE_MARKERS, skew
 from .quaternion_fit import HORN_A, HORN_B, rotations_from_correlations
 from .segment_tracker import (
@@ -58,11 +66,7 @@ from .segments import (
     centre_from_pose_sums,
 )
 from .serial import (
-    LAG_TOLERANCE,
-    N_TIME_LAG_SUMS,
     NOMINAL_RATE_HZ,
-    SERIAL_LAGS_S,
-    LagHistory,
     LagSums,
     SerialInflation,
     TimeLagSums,
@@ -76,7 +80,7 @@ from .serial import (
     serial_factor,
     smooth_energy_from_lags,
 )
-from .stats import SlidingSums, WindowSpec, window_spec
+from .stats import WindowSpec, window_spec
 
 __all__ = [
     "OnlineJoint",
@@ -105,31 +109,7 @@ GATE_REFRESH_FRAMES = 50
 CALIBRATION_FORMAT = "jointfit-calibration"
 CALIBRATION_VERSION = 1
 _KINDS = ("ball", "hinge")
-#: Sums layout, with Z = [Q | t] (3 x 4, row-major) the relative pose: n, vec(Z) (12),
-#: vec(Z) vec(Z)^T (144: holds Q (x) Q, Q^T t and |t|^2), unit W_p (36), unit W_c (36),
-#: ss_p, dof_p, ss_c, dof_c, then the lag pair ending at the frame
-#: (:class:`~jointfit_core.serial.LagSums`): n_pairs, Z_k + Z_{k-1} (12), Z_k^T Z_{k-1} (16).
-_Z = slice(1, 13)
-_ZZ = slice(13, 157)
-_W = slice(157, 229)
-_SS = 229
-_LAG = 233
-#: Then the soft-tissue feature sums (:func:`~jointfit_core.artefact_sums.feature_sums`; zero for rigid markers).
-_FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
-#: Then the lag pairs in seconds (:class:`~jointfit_core.serial.TimeLagSums`, :class:`~jointfit_core.serial.LagHistory`).
-_TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
-#: Then the seconds of movement the frame adds (:func:`_moving_seconds`).
-_MOVE = _TL.stop
-_N_SUMS = _MOVE + 1
-#: Skin hinges only, at the end: the features' second moments (the alignment reading's Gram).
-_FM = slice(_N_SUMS, _N_SUMS + N_FEATURE_MOMENTS)
-_N_SUMS_HINGE = _FM.stop
 
-#: Movement: a frame in the statistics counts as movement when its relative rotation differs by more
-#: than this (deg) from that of its lag pair about 0.32 s earlier (``SERIAL_LAGS_S[3]``, a frame
-#: 0.16-0.48 s before it). White noise of 1 mm on 50 mm clusters moves it by ~2 deg; functional
-#: movements turn joints at 30-100 deg/s (10-30 deg in 0.32 s).
-MOVING_DEG = 5.0
 #: Skin markers: the least movement (s) in the window before an estimate may be called identifiable.
 #: The soft-tissue artefact is correlated over about a second of movement (0.8 s of data per
 #: independent sample on the hip model, ``bench/sta_online.py``), and its size is read from the
@@ -138,25 +118,6 @@ MOVING_DEG = 5.0
 #: and the estimate was confidently wrong (knee, 10 mm of artefact, 0.3-0.8 s of movement: e/2 up to
 #: 250; ``test/test_skin_movement.py``). Two independent samples of the artefact: 2 s.
 SKIN_MIN_MOVEMENT_S = 2.0
-_MOVE_LAG = SERIAL_LAGS_S.index(0.32)
-_MOVE_NODE = (N_TIME_LAG_SUMS - 2) // len(SERIAL_LAGS_S)
-_MOVE_AT = 2 + _MOVE_LAG * _MOVE_NODE  # that lag's node in the time-lag contribution
-_MOVE_GAP_MAX = (1.0 + LAG_TOLERANCE) * SERIAL_LAGS_S[_MOVE_LAG]
-_MOVE_TRACE_MIN = 1.0 + 2.0 * math.cos(math.radians(MOVING_DEG))  # tr(Q_k^T Q_j) at that turn
-
-
-def _moving_seconds(lagged: FloatArray) -> FloatArray:
-    """Seconds of movement frames add, from their time-lag contributions ``(..., N_TIME_LAG_SUMS)`` -> ``(...)``.
-
-    A frame whose pair at 0.32 s (:class:`~jointfit_core.serial.LagHistory`) turned by more than
-    :data:`MOVING_DEG` adds its gap to the frame before it (at most 0.48 s, the pair's reach; an
-    occlusion's gap is not movement); other frames add 0. ``tr(Q_k^T Q_j) = 1 + 2 cos(angle)`` is
-    the trace of the top-left block of the pair's ``Z_k^T Z_j``.
-    """
-    node = lagged[..., _MOVE_AT : _MOVE_AT + _MOVE_NODE]
-    trace = node[..., 13] + node[..., 18] + node[..., 23]
-    out: FloatArray = np.where((node[..., 0] > 0.0) & (trace < _MOVE_TRACE_MIN), np.minimum(lagged[..., 1], _MOVE_GAP_MAX), 0.0)
-    return out
 
 
 def _gather_indices() -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
@@ -947,7 +908,6 @@ class OnlineJoint:
         self.attachment: tuple[str, str] = check_attachment(attachment)
         self._skin = "skin" in self.attachment
         self._moments = self._skin and self.kind == "hinge"
-        self._n_sums = _N_SUMS_HINGE if self._moments else _N_SUMS
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
         self.gate_log: list[tuple[int, int, float]] | None = None
@@ -960,7 +920,7 @@ class OnlineJoint:
         self.n_markers: tuple[int, int] | None = self._n_markers_arg
         self._parent: SegmentTracker | None = None
         self._child: SegmentTracker | None = None
-        self._sums: SlidingSums | None = None
+        self._stats = RelativePoseSums(self.spec, self._skin, self._moments)
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
         self._solution: PoseSumsCentre | PoseSumsAxis | None = None
         self._sigma = (0.0, 0.0)
@@ -980,22 +940,6 @@ class OnlineJoint:
         #: the frame came in a block). The skeleton's segment outputs read it
         #: (:mod:`jointfit_core.segment_frames`).
         self.frame_poses: tuple[FloatArray, FloatArray, tuple[bool, bool]] | None = None
-        self._contribution = np.zeros(self._n_sums)
-        self._contribution[0] = 1.0
-        self._c_pairs: _PairSet | None = None  # the pair set whose W and dofs the contribution holds
-        # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
-        self._z_view = self._contribution[_Z].reshape(3, 4)
-        self._zf_view = self._contribution[_Z]
-        self._outer_view = self._contribution[_ZZ].reshape(12, 12)
-        self._x_buf = np.zeros((3, 4))  # [R_c | d_c - d_p]
-        self._z_prev = np.zeros((3, 4))  # Z of the previous frame that entered the statistics
-        self._prev_in = False  # whether the previous frame that reached _add entered the statistics
-        self._history = LagHistory()  # recent frames in the statistics, for the pairs at lags in seconds
-        self._tl_view = self._contribution[_TL]
-        self._pair_view = self._contribution[_LAG + 1 : _LAG + 13].reshape(3, 4)
-        self._cross_view = self._contribution[_LAG + 13 : _LAG + 29].reshape(4, 4)
-        self._fs_view = self._contribution[_FS]  # the soft-tissue feature sums, then (skin hinges) their moments
-        self._fm_view = self._contribution[_FM] if self._moments else None
         self._serial: SerialInflation | None = None
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
@@ -1045,9 +989,14 @@ class OnlineJoint:
         )
 
     @property
+    def statistics(self) -> RelativePoseSums:
+        """The joint's window of relative-pose sums (:class:`~jointfit_core.joint_sums.RelativePoseSums`)."""
+        return self._stats
+
+    @property
     def n_window(self) -> int:
         """Frames in the window (frames added, under forgetting)."""
-        return 0 if self._sums is None else self._sums.n_window
+        return 0 if self._stats.window is None else self._stats.window.n_window
 
     @property
     def length_scale(self) -> float:
@@ -1339,10 +1288,10 @@ class OnlineJoint:
         if rows.size:
             # a lag pair when the accepted frame before entered the statistics
             before_in = np.empty(m, dtype=bool)
-            before_in[0] = self._prev_in
+            before_in[0] = self._stats.chained
             before_in[1:] = entered[:-1]
             self._push_block(Y[rows], slots[rows], before_in[rows], st, rows, numbers)
-        self._prev_in = bool(entered[-1])
+        self._stats.chained = bool(entered[-1])
 
     def _gated_block(
         self,
@@ -1441,7 +1390,7 @@ class OnlineJoint:
             run = np.flatnonzero(entered[start:f]) + start
             if run.size:
                 before_in = np.empty(run.size, dtype=bool)
-                before_in[0] = self._prev_in if run[0] == start else False
+                before_in[0] = self._stats.chained if run[0] == start else False
                 before_in[1:] = np.diff(run) == 1
                 if run[0] > start:
                     before_in[0] = bool(entered[run[0] - 1])
@@ -1451,7 +1400,7 @@ class OnlineJoint:
                     self._joint.passed(z, numbers[run], self._joint.scores_of(z, numbers[run]), False)
                 self._push_block(Y[run], slots[run], before_in, st, run, numbers, (R[pos], d[pos], ss[pos]))
             if start < f:
-                self._prev_in = bool(entered[f - 1])
+                self._stats.chained = bool(entered[f - 1])
                 lo, hi = np.searchsorted(rows, (start, f))
                 for k in range(2):
                     seg = seg_rows[k]
@@ -1536,72 +1485,11 @@ class OnlineJoint:
             R, d, ss = _poses_many(Y.reshape(2 * m, *Y.shape[2:]), *self._pose_fields(seg))
             poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
         R, d, ss = poses
-        if self._sums is None:
-            self._sums = SlidingSums(self.spec, self._n_sums, self._n_sums, None)
         stamps = None if st is None else st[rows]
-        x = np.empty((m, 3, 4))
-        x[:, :, :3] = R[:, 1]
-        np.subtract(d[:, 1], d[:, 0], out=x[:, :, 3])
-        z = np.matmul(np.swapaxes(R[:, 0], 1, 2), x)  # [Q | t] = R_p^T [R_c | d_c - d_p]
-        zf = z.reshape(m, 12)
-        # Lag pairs: the previous frame that entered is the previous row (the previous block's last for row 0).
-        z_prev = np.empty_like(z)
-        z_prev[0] = self._z_prev
-        z_prev[1:] = z[:-1]
         times = stamps if stamps is not None else numbers[rows] / NOMINAL_RATE_HZ
-        lagged = np.empty((m, N_TIME_LAG_SUMS))
-        self._history.contributions(np.asarray(times, dtype=np.float64), z, lagged)
         table = self._pair_table()
-        dof_sets, W_sets = table[5], table[6]
-        if self._sums.spec.exponential:
-            # No window ring to keep records for: sum the block's weighted contributions with
-            # matrix products, never forming them one per frame.
-            w, w_old = self._sums.block_weights(m, stamps)
-            total = np.empty(self._n_sums)
-            total[0] = w.sum()
-            total[_Z] = w @ zf
-            total[_ZZ] = ((zf * w[:, None]).T @ zf).ravel()
-            set_weight = np.bincount(which, weights=w, minlength=W_sets.shape[0])
-            total[_W] = set_weight @ W_sets
-            total[_SS : _SS + 4 : 2] = w @ ss
-            total[_SS + 1 : _SS + 4 : 2] = set_weight @ dof_sets
-            # rows without a lag pair weigh zero (cheaper than gathering the paired rows)
-            wp = w * paired
-            total[_LAG] = wp.sum()
-            total[_LAG + 1 : _LAG + 13] = wp @ (z + z_prev).reshape(m, 12)
-            cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
-            total[_LAG + 13 : _LAG + 29] = cross.ravel()
-            if self._skin:
-                fsum = w @ feature_sums(z[:, :, :3], z[:, :, 3], self._moments)
-                total[_FS] = fsum[:N_FEATURE_SUMS]
-                total[_N_SUMS:] = fsum[N_FEATURE_SUMS:]  # the moments: skin hinges only
-            else:
-                total[_FS] = 0.0
-            total[_TL] = w @ lagged
-            total[_MOVE] = w @ _moving_seconds(lagged)
-            self._sums.push_weighted_sum(total, w_old, m, stamps)
-        else:
-            pr = np.flatnonzero(paired)
-            c = np.empty((m, self._n_sums))
-            c[:, 0] = 1.0
-            c[:, _Z] = zf
-            np.multiply(zf[:, :, None], zf[:, None, :], out=c[:, _ZZ].reshape(m, 12, 12))
-            c[:, _W] = W_sets[which]
-            c[:, _SS : _SS + 4 : 2] = ss
-            c[:, _SS + 1 : _SS + 4 : 2] = dof_sets[which]
-            c[:, _LAG:] = 0.0
-            c[pr, _LAG] = 1.0
-            c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
-            if self._skin:
-                fsum = feature_sums(z[:, :, :3], z[:, :, 3], self._moments)
-                c[:, _FS] = fsum[:, :N_FEATURE_SUMS]
-                c[:, _N_SUMS:] = fsum[:, N_FEATURE_SUMS:]
-            c[:, _TL] = lagged
-            c[:, _MOVE] = _moving_seconds(lagged)
-            c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
-            self._sums.push_many(c, stamps)
+        self._stats.add_block(R, d, ss, table[6], table[5], which, paired, stamps, np.asarray(times, dtype=np.float64))
         self._version += 1
-        self._z_prev[...] = z[-1]
 
     def _fast_fill(self, parent: ArrayLike, child: ArrayLike) -> bool:
         """Copy a well-shaped frame straight into the pose buffer; False to take the checked path.
@@ -1718,8 +1606,9 @@ class OnlineJoint:
             sigma = np.array(self._sigma, dtype=np.float64)
         else:
             sigma = np.array([self._parent.template_sigma, self._child.template_sigma])
-        if self._sums is not None:
-            ss, dof = self._sums.sums[_SS : _SS + 4 : 2], self._sums.sums[_SS + 1 : _SS + 4 : 2]
+        noise = self._stats.noise_sums()
+        if noise is not None:
+            ss, dof = noise
             pooled = dof > 0.0
             sigma[pooled] = np.sqrt(np.maximum(ss[pooled], 0.0) / dof[pooled])
         for k, fixed in enumerate(self._noise_arg):
@@ -1817,7 +1706,7 @@ class OnlineJoint:
         if ps.child is None and not counted[1]:
             self._drop("child_not_posed")
         if ps.parent is None and ps.child is None:
-            self._prev_in = False
+            self._stats.chained = False
             return None
         Y = self._Y
         if missing is not self._none_missing:
@@ -1873,45 +1762,14 @@ class OnlineJoint:
                 self._seen(ps, local, frame_no)
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
             if self._joint_fails(R, d, frame_no, stamp):
-                self._prev_in = False
+                self._stats.chained = False
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
         if ps.parent is not None and ps.child is not None and not self._frozen:
-            c = self._contribution
-            z = self._z_view
-            x = self._x_buf
-            x[:, :3] = R[1]
-            np.subtract(d[1], d[0], out=x[:, 3])
-            np.matmul(R[0].T, x, out=z)  # [Q | t] = R_p^T [R_c | d_c - d_p]
-            zf = self._zf_view
-            np.multiply.outer(zf, zf, out=self._outer_view)
-            if ps is not self._c_pairs:  # (the pose covariances and dofs are the pair set's: written when it changes)
-                c[_W] = ps.W_flat
-                c[_SS + 1 : _SS + 4 : 2] = ps.dof
-                self._c_pairs = ps
-            c[_SS : _SS + 4 : 2] = ss
-            if self._skin:
-                feature_sums_into(z, self._fs_view, self._fm_view)
-            # The lag pair (previous frame in the statistics, this one), stored with this frame.
-            if self._prev_in:
-                c[_LAG] = 1.0
-                np.add(z, self._z_prev, out=self._pair_view)
-                np.matmul(z.T, self._z_prev, out=self._cross_view)
-            elif c[_LAG] != 0.0:
-                c[_LAG : _LAG + 29] = 0.0
-            self._history.contribution_one(stamp if stamp is not None else frame_no / NOMINAL_RATE_HZ, z, self._tl_view)
-            tl = self._tl_view
-            # _moving_seconds of this one frame, in scalars (0.5 against 3.9 us per frame; tested equal)
-            moved = tl[_MOVE_AT] > 0.0 and tl[_MOVE_AT + 13] + tl[_MOVE_AT + 18] + tl[_MOVE_AT + 23] < _MOVE_TRACE_MIN
-            c[_MOVE] = min(float(tl[1]), _MOVE_GAP_MAX) if moved else 0.0
-            if self._sums is None:
-                self._sums = SlidingSums(self.spec, self._n_sums, self._n_sums, None)
-            self._sums.push(c, stamp)
+            self._stats.add_frame(R, d, ss, ps, stamp, frame_no)
             self._version += 1
-            self._z_prev[...] = z
-            self._prev_in = True
         else:
-            self._prev_in = False
+            self._stats.chained = False
         if ps.parent is None or self._solution is None:
             return None
         child_pose = (R[1], d[1], ps.child) if ps.child is not None else None
@@ -1953,7 +1811,7 @@ class OnlineJoint:
         InputError
             No frame has entered the statistics yet.
         """
-        return LagSums.from_vector(self._entered_sums()[_LAG : _LAG + 29])
+        return self._stats.lag_sums(self.status())
 
     def time_lag_sums(self) -> TimeLagSums:
         """The window's lag-pair sums at lags in seconds (:class:`~jointfit_core.serial.TimeLagSums`).
@@ -1963,13 +1821,14 @@ class OnlineJoint:
         InputError
             No frame has entered the statistics yet.
         """
-        return TimeLagSums.from_vector(self._entered_sums()[_TL])
+        return self._stats.time_lag_sums(self.status())
 
     def sums_vector(self) -> FloatArray | None:
         """A copy of the window's sums vector (the layout :meth:`request_for` takes); None before any frame entered."""
-        if self._sums is None or self._sums.sums[0] <= 0.0:
+        window = self._stats.window
+        if window is None or window.sums[0] <= 0.0:
             return None
-        return self._sums.sums.copy()
+        return window.sums.copy()
 
     def window_contributions(self) -> tuple[FloatArray, FloatArray] | None:
         """Each frame's contribution to the window's sums, oldest first, and its stamp.
@@ -1981,9 +1840,10 @@ class OnlineJoint:
             not stamped). None for exponential forgetting (which keeps no
             frames) and before any frame entered.
         """
-        if self._sums is None or self._sums.spec.exponential or self._sums.n_window == 0:
+        window = self._stats.window
+        if window is None or window.spec.exponential or window.n_window == 0:
             return None
-        return self._sums.window_records(), self._sums.window_stamps()
+        return window.window_records(), window.window_stamps()
 
     @property
     def solved_version(self) -> tuple[int, int]:
@@ -1992,19 +1852,16 @@ class OnlineJoint:
 
     def _entered_sums(self) -> FloatArray:
         """The window's sums vector; InputError when no frame has entered the statistics yet."""
-        if self._sums is None or self._sums.sums[0] <= 0.0:
-            raise InputError(f"no frame has entered the statistics yet ({self.status() or 'no posed frame'})")
-        return self._sums.sums
+        return self._stats.entered(self.status())
 
     @property
     def movement_seconds(self) -> float:
-        """Seconds of movement in the window (weighted, with forgetting): frames whose relative rotation turned by more than :data:`MOVING_DEG` in 0.32 s.
+        """Seconds of movement in the window (weighted, with forgetting): frames whose relative rotation turned by more than :data:`~jointfit_core.joint_sums.MOVING_DEG` in 0.32 s.
 
-        Skin estimates are identifiable from :data:`SKIN_MIN_MOVEMENT_S` on (see :func:`_moving_seconds`).
+        Skin estimates are identifiable from :data:`SKIN_MIN_MOVEMENT_S` on (see
+        :func:`~jointfit_core.joint_sums.moving_seconds`).
         """
-        if self._sums is None:
-            return 0.0
-        return float(self._sums.sums[_MOVE])
+        return self._stats.movement_seconds
 
     @property
     def serial_inflation(self) -> SerialInflation | None:

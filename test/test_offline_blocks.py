@@ -107,7 +107,7 @@ def _snapshot(router: MessageRouter) -> dict[str, Any]:
         snap[f"{name}.rate_stamps"] = list(r._stamps)
         snap[f"{name}.dropped"] = dict(est.dropped)
         snap[f"{name}.seen"] = est.n_frames_seen
-        snap[f"{name}.sums"] = None if est._sums is None else est._sums.sums.copy()
+        snap[f"{name}.sums"] = None if est.statistics.window is None else est.statistics.window.sums.copy()
         snap[f"{name}.reference"] = est.reference_direction
         snap[f"{name}.last_error"] = r.last_error
         if est.solution is not None:
@@ -191,7 +191,7 @@ def test_markers_block_gives_bad_frames_one_by_one() -> None:
         assert a.counters == b.counters and a.last_error == b.last_error
         assert a.counters["malformed"] == 1  # PELV2 in frame 200 (hip), FEMUR2 in frame 450 (knee)
         assert a.estimator.dropped == b.estimator.dropped
-        assert rel_diff(a.estimator._sums.sums, b.estimator._sums.sums) < SUMS_RTOL  # type: ignore[union-attr]
+        assert rel_diff(a.estimator.statistics.window.sums, b.estimator.statistics.window.sums) < SUMS_RTOL  # type: ignore[union-attr]
 
 
 @pytest.mark.parametrize("reader_process", [False, True])

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from helpers import mahalanobis, template_rotation
 
-from jointfit_core.estimator import MOVING_DEG, SKIN_MIN_MOVEMENT_S, OnlineJoint
+from jointfit_core.estimator import SKIN_MIN_MOVEMENT_S, OnlineJoint
+from jointfit_core.joint_sums import MOVING_DEG
 from jointfit_core.soft_tissue import knee_motion, skin_markers_at
 
 RATE = 100.0

@@ -140,7 +140,7 @@ def _stream(
 
 
 def _state(est: OnlineJoint) -> dict[str, Any]:
-    s = est._sums
+    s = est.statistics.window
     assert s is not None
     out: dict[str, Any] = {
         "sums": s.sums.copy(),
@@ -218,11 +218,11 @@ def test_update_many_without_stamps_fixed_templates_and_frozen() -> None:
     _assert_same(many, one, exact=True)
     one.freeze()
     many.freeze()
-    sums = many._sums.sums.copy()  # type: ignore[union-attr]
+    sums = many.statistics.window.sums.copy()  # type: ignore[union-attr]
     for k in range(600, 750):
         one.update(yp[k], yc[k])
     many.update_many(yp[600:750], yc[600:750])
-    np.testing.assert_array_equal(many._sums.sums, sums)  # type: ignore[union-attr]
+    np.testing.assert_array_equal(many.statistics.window.sums, sums)  # type: ignore[union-attr]
     _assert_same(many, one, exact=True)
     one.thaw()
     many.thaw()

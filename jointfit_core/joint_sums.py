@@ -1,0 +1,340 @@
+"""One joint's window of relative-pose statistics: what each frame adds, and the sums.
+
+:class:`RelativePoseSums` is the part of an online joint
+(:class:`~jointfit_core.estimator.OnlineJoint`) that belongs to the joint alone
+(issue 16, item 3): given the two segments' poses of a frame (or of a block of
+frames), it forms the frame's contribution (the relative pose ``Z = [Q | t]``,
+its outer product, the pose-noise terms of the visible marker sets, the lag
+pairs, the soft-tissue feature sums and the movement) and pushes it into the
+sliding window (:class:`~jointfit_core.stats.SlidingSums`). Posing and gating
+the segments happen before it; solving reads :attr:`RelativePoseSums.window`.
+
+The layout of the sums vector is defined here (``_Z`` ... ``_FM``); the solve
+(:func:`~jointfit_core.estimator.solve_window`) reads it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .artefact_sums import N_FEATURE_MOMENTS, N_FEATURE_SUMS, feature_sums, feature_sums_into
+from .errors import InputError
+from .serial import (
+    LAG_TOLERANCE,
+    N_TIME_LAG_SUMS,
+    NOMINAL_RATE_HZ,
+    SERIAL_LAGS_S,
+    LagHistory,
+    LagSums,
+    TimeLagSums,
+)
+from .stats import SlidingSums, WindowSpec
+
+__all__ = ["MOVING_DEG", "RelativePoseSums", "moving_seconds"]
+
+FloatArray = NDArray[np.float64]
+
+#: Sums layout, with Z = [Q | t] (3 x 4, row-major) the relative pose: n, vec(Z) (12),
+#: vec(Z) vec(Z)^T (144: holds Q (x) Q, Q^T t and |t|^2), unit W_p (36), unit W_c (36),
+#: ss_p, dof_p, ss_c, dof_c, then the lag pair ending at the frame
+#: (:class:`~jointfit_core.serial.LagSums`): n_pairs, Z_k + Z_{k-1} (12), Z_k^T Z_{k-1} (16).
+_Z = slice(1, 13)
+_ZZ = slice(13, 157)
+_W = slice(157, 229)
+_SS = 229
+_LAG = 233
+#: Then the soft-tissue feature sums (:func:`~jointfit_core.artefact_sums.feature_sums`; zero for rigid markers).
+_FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
+#: Then the lag pairs in seconds (:class:`~jointfit_core.serial.TimeLagSums`, :class:`~jointfit_core.serial.LagHistory`).
+_TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
+#: Then the seconds of movement the frame adds (:func:`moving_seconds`).
+_MOVE = _TL.stop
+_N_SUMS = _MOVE + 1
+#: Skin hinges only, at the end: the features' second moments (the alignment reading's Gram).
+_FM = slice(_N_SUMS, _N_SUMS + N_FEATURE_MOMENTS)
+_N_SUMS_HINGE = _FM.stop
+
+#: Movement: a frame in the statistics counts as movement when its relative rotation differs by more
+#: than this (deg) from that of its lag pair about 0.32 s earlier (``SERIAL_LAGS_S[3]``, a frame
+#: 0.16-0.48 s before it). White noise of 1 mm on 50 mm clusters moves it by ~2 deg; functional
+#: movements turn joints at 30-100 deg/s (10-30 deg in 0.32 s).
+MOVING_DEG = 5.0
+_MOVE_LAG = SERIAL_LAGS_S.index(0.32)
+_MOVE_NODE = (N_TIME_LAG_SUMS - 2) // len(SERIAL_LAGS_S)
+_MOVE_AT = 2 + _MOVE_LAG * _MOVE_NODE  # that lag's node in the time-lag contribution
+_MOVE_GAP_MAX = (1.0 + LAG_TOLERANCE) * SERIAL_LAGS_S[_MOVE_LAG]
+_MOVE_TRACE_MIN = 1.0 + 2.0 * math.cos(math.radians(MOVING_DEG))  # tr(Q_k^T Q_j) at that turn
+
+
+def moving_seconds(lagged: FloatArray) -> FloatArray:
+    """Seconds of movement frames add, from their time-lag contributions ``(..., N_TIME_LAG_SUMS)`` -> ``(...)``.
+
+    A frame whose pair at 0.32 s (:class:`~jointfit_core.serial.LagHistory`) turned by more than
+    :data:`MOVING_DEG` adds its gap to the frame before it (at most 0.48 s, the pair's reach; an
+    occlusion's gap is not movement); other frames add 0. ``tr(Q_k^T Q_j) = 1 + 2 cos(angle)`` is
+    the trace of the top-left block of the pair's ``Z_k^T Z_j``.
+    """
+    node = lagged[..., _MOVE_AT : _MOVE_AT + _MOVE_NODE]
+    trace = node[..., 13] + node[..., 18] + node[..., 23]
+    out: FloatArray = np.where((node[..., 0] > 0.0) & (trace < _MOVE_TRACE_MIN), np.minimum(lagged[..., 1], _MOVE_GAP_MAX), 0.0)
+    return out
+
+
+class PosedPair(Protocol):
+    """What a frame's contribution needs of its visible marker sets (``_PairSet`` of the estimator)."""
+
+    @property
+    def W_flat(self) -> FloatArray:  # noqa: N802 (the pose covariance W, as in Stoddart et al.)
+        """(72,) unit W_p and W_c, raveled."""
+
+    @property
+    def dof(self) -> FloatArray:
+        """(2,) pose-fit degrees of freedom of the parent and the child."""
+
+
+class RelativePoseSums:
+    """A joint's sliding window of relative-pose sums, fed frame by frame or block by block.
+
+    Parameters
+    ----------
+    spec : WindowSpec
+        The window (frames, seconds or exponential forgetting).
+    skin : bool
+        Keep the soft-tissue feature sums (either segment on skin markers).
+    moments : bool
+        Keep the features' second moments too (skin hinges).
+
+    Attributes
+    ----------
+    window : SlidingSums or None
+        The window's sums (layout: this module's ``_Z`` ... ``_FM``); None until a frame entered.
+    chained : bool
+        Whether the last frame that reached the joint entered the statistics: the next frame then
+        carries its lag pair with it (see :class:`~jointfit_core.estimator.OnlineJoint`, Notes,
+        *lag pairs*). The joint clears it for a frame that reaches it but cannot enter.
+    """
+
+    def __init__(self, spec: WindowSpec, skin: bool, moments: bool) -> None:
+        self.spec = spec
+        self._skin = skin
+        self._moments = moments
+        self.n_sums = _N_SUMS_HINGE if moments else _N_SUMS
+        self.window: SlidingSums | None = None
+        self.chained = False
+        c = np.zeros(self.n_sums)
+        c[0] = 1.0
+        self._contribution = c
+        self._pairs: PosedPair | None = None  # the pair set whose W and dofs the contribution holds
+        # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
+        self._z_view = c[_Z].reshape(3, 4)
+        self._zf_view = c[_Z]
+        self._outer_view = c[_ZZ].reshape(12, 12)
+        self._x_buf = np.zeros((3, 4))  # [R_c | d_c - d_p]
+        self._z_prev = np.zeros((3, 4))  # Z of the previous frame that entered the statistics
+        self._history = LagHistory()  # recent frames in the statistics, for the pairs at lags in seconds
+        self._tl_view = c[_TL]
+        self._pair_view = c[_LAG + 1 : _LAG + 13].reshape(3, 4)
+        self._cross_view = c[_LAG + 13 : _LAG + 29].reshape(4, 4)
+        self._fs_view = c[_FS]  # the soft-tissue feature sums, then (skin hinges) their moments
+        self._fm_view = c[_FM] if moments else None
+
+    def _window(self) -> SlidingSums:
+        if self.window is None:
+            self.window = SlidingSums(self.spec, self.n_sums, self.n_sums, None)
+        return self.window
+
+    def add_frame(
+        self, R: FloatArray, d: FloatArray, ss: FloatArray, pairs: PosedPair, stamp: float | None, frame_no: int
+    ) -> None:
+        """Push one frame whose two segments are posed.
+
+        Parameters
+        ----------
+        R : ndarray, shape (2, 3, 3)
+            Parent and child rotations (template frame to world).
+        d : ndarray, shape (2, 3)
+            Their translations (input units).
+        ss : ndarray, shape (2,)
+            Their pose fits' residual sums of squares (input units squared).
+        pairs : PosedPair
+            The frame's visible marker sets (their unit pose covariances and dofs).
+        stamp : float or None
+            Seconds; without one, the frame's time is ``frame_no`` at the nominal rate.
+        frame_no : int
+            The frame's number (1-based count of the frames that reached the joint).
+        """
+        c = self._contribution
+        z = self._z_view
+        x = self._x_buf
+        x[:, :3] = R[1]
+        np.subtract(d[1], d[0], out=x[:, 3])
+        np.matmul(R[0].T, x, out=z)  # [Q | t] = R_p^T [R_c | d_c - d_p]
+        zf = self._zf_view
+        np.multiply.outer(zf, zf, out=self._outer_view)
+        if pairs is not self._pairs:  # (the pose covariances and dofs are the pair set's: written when it changes)
+            c[_W] = pairs.W_flat
+            c[_SS + 1 : _SS + 4 : 2] = pairs.dof
+            self._pairs = pairs
+        c[_SS : _SS + 4 : 2] = ss
+        if self._skin:
+            feature_sums_into(z, self._fs_view, self._fm_view)
+        # The lag pair (previous frame in the statistics, this one), stored with this frame.
+        if self.chained:
+            c[_LAG] = 1.0
+            np.add(z, self._z_prev, out=self._pair_view)
+            np.matmul(z.T, self._z_prev, out=self._cross_view)
+        elif c[_LAG] != 0.0:
+            c[_LAG : _LAG + 29] = 0.0
+        self._history.contribution_one(stamp if stamp is not None else frame_no / NOMINAL_RATE_HZ, z, self._tl_view)
+        tl = self._tl_view
+        # moving_seconds of this one frame, in scalars (0.5 against 3.9 us per frame; tested equal)
+        moved = tl[_MOVE_AT] > 0.0 and tl[_MOVE_AT + 13] + tl[_MOVE_AT + 18] + tl[_MOVE_AT + 23] < _MOVE_TRACE_MIN
+        c[_MOVE] = min(float(tl[1]), _MOVE_GAP_MAX) if moved else 0.0
+        self._window().push(c, stamp)
+        self._z_prev[...] = z
+        self.chained = True
+
+    def add_block(
+        self,
+        R: FloatArray,
+        d: FloatArray,
+        ss: FloatArray,
+        W_sets: FloatArray,
+        dof_sets: FloatArray,
+        which: NDArray[np.intp],
+        paired: NDArray[np.bool_],
+        stamps: FloatArray | None,
+        times: FloatArray,
+    ) -> None:
+        """Push a block of frames whose two segments are posed, in a few vectorised steps.
+
+        Parameters
+        ----------
+        R, d, ss : ndarray, shapes (M, 2, 3, 3), (M, 2, 3), (M, 2)
+            Per frame, as in :meth:`add_frame`.
+        W_sets, dof_sets : ndarray, shapes (S, 72), (S, 2)
+            The unit pose covariances and dofs of ``S`` visible marker sets.
+        which : ndarray of int, shape (M,)
+            Each frame's visible marker set (its row in ``W_sets`` and ``dof_sets``).
+        paired : ndarray of bool, shape (M,)
+            Per frame, whether it carries its lag pair with the frame before it (the block's
+            previous row; for row 0, the last frame this window took).
+        stamps : ndarray, shape (M,), or None
+            Seconds (None: a window without stamps).
+        times : ndarray, shape (M,)
+            The frames' times for the pairs at lags in seconds (the stamps, or frame numbers at the
+            nominal rate).
+
+        Notes
+        -----
+        The sums equal those of :meth:`add_frame` of each frame in turn to rounding; exponential
+        forgetting sums the block's weighted contributions with matrix products, never forming
+        them one per frame.
+        """
+        m = R.shape[0]
+        window = self._window()
+        x = np.empty((m, 3, 4))
+        x[:, :, :3] = R[:, 1]
+        np.subtract(d[:, 1], d[:, 0], out=x[:, :, 3])
+        z = np.matmul(np.swapaxes(R[:, 0], 1, 2), x)  # [Q | t] = R_p^T [R_c | d_c - d_p]
+        zf = z.reshape(m, 12)
+        # Lag pairs: the previous frame that entered is the previous row (the previous block's last for row 0).
+        z_prev = np.empty_like(z)
+        z_prev[0] = self._z_prev
+        z_prev[1:] = z[:-1]
+        lagged = np.empty((m, N_TIME_LAG_SUMS))
+        self._history.contributions(np.asarray(times, dtype=np.float64), z, lagged)
+        if window.spec.exponential:
+            self._push_weighted(window, z, z_prev, ss, W_sets, dof_sets, which, paired, stamps, lagged)
+        else:
+            pr = np.flatnonzero(paired)
+            c = np.empty((m, self.n_sums))
+            c[:, 0] = 1.0
+            c[:, _Z] = zf
+            np.multiply(zf[:, :, None], zf[:, None, :], out=c[:, _ZZ].reshape(m, 12, 12))
+            c[:, _W] = W_sets[which]
+            c[:, _SS : _SS + 4 : 2] = ss
+            c[:, _SS + 1 : _SS + 4 : 2] = dof_sets[which]
+            c[:, _LAG:] = 0.0
+            c[pr, _LAG] = 1.0
+            c[pr, _LAG + 1 : _LAG + 13] = (z[pr] + z_prev[pr]).reshape(pr.size, 12)
+            if self._skin:
+                fsum = feature_sums(z[:, :, :3], z[:, :, 3], self._moments)
+                c[:, _FS] = fsum[:, :N_FEATURE_SUMS]
+                c[:, _N_SUMS:] = fsum[:, N_FEATURE_SUMS:]
+            c[:, _TL] = lagged
+            c[:, _MOVE] = moving_seconds(lagged)
+            c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
+            window.push_many(c, stamps)
+        self._z_prev[...] = z[-1]
+
+    def _push_weighted(
+        self,
+        window: SlidingSums,
+        z: FloatArray,
+        z_prev: FloatArray,
+        ss: FloatArray,
+        W_sets: FloatArray,
+        dof_sets: FloatArray,
+        which: NDArray[np.intp],
+        paired: NDArray[np.bool_],
+        stamps: FloatArray | None,
+        lagged: FloatArray,
+    ) -> None:
+        """:meth:`add_block` under exponential forgetting: no window ring to keep records for, one weighted sum."""
+        m = z.shape[0]
+        zf = z.reshape(m, 12)
+        w, w_old = window.block_weights(m, stamps)
+        total = np.empty(self.n_sums)
+        total[0] = w.sum()
+        total[_Z] = w @ zf
+        total[_ZZ] = ((zf * w[:, None]).T @ zf).ravel()
+        set_weight = np.bincount(which, weights=w, minlength=W_sets.shape[0])
+        total[_W] = set_weight @ W_sets
+        total[_SS : _SS + 4 : 2] = w @ ss
+        total[_SS + 1 : _SS + 4 : 2] = set_weight @ dof_sets
+        # rows without a lag pair weigh zero (cheaper than gathering the paired rows)
+        wp = w * paired
+        total[_LAG] = wp.sum()
+        total[_LAG + 1 : _LAG + 13] = wp @ (z + z_prev).reshape(m, 12)
+        cross = (z * wp[:, None, None]).reshape(-1, 4).T @ z_prev.reshape(-1, 4)
+        total[_LAG + 13 : _LAG + 29] = cross.ravel()
+        if self._skin:
+            fsum = w @ feature_sums(z[:, :, :3], z[:, :, 3], self._moments)
+            total[_FS] = fsum[:N_FEATURE_SUMS]
+            total[_N_SUMS:] = fsum[N_FEATURE_SUMS:]  # the moments: skin hinges only
+        else:
+            total[_FS] = 0.0
+        total[_TL] = w @ lagged
+        total[_MOVE] = w @ moving_seconds(lagged)
+        window.push_weighted_sum(total, w_old, m, stamps)
+
+    def entered(self, status: str) -> FloatArray:
+        """The window's sums vector; InputError (naming ``status``) when no frame has entered the statistics yet."""
+        if self.window is None or self.window.sums[0] <= 0.0:
+            raise InputError(f"no frame has entered the statistics yet ({status or 'no posed frame'})")
+        return self.window.sums
+
+    def lag_sums(self, status: str) -> LagSums:
+        """The window's lag-pair sums (:class:`~jointfit_core.serial.LagSums`)."""
+        return LagSums.from_vector(self.entered(status)[_LAG : _LAG + 29])
+
+    def time_lag_sums(self, status: str) -> TimeLagSums:
+        """The window's lag-pair sums at lags in seconds (:class:`~jointfit_core.serial.TimeLagSums`)."""
+        return TimeLagSums.from_vector(self.entered(status)[_TL])
+
+    @property
+    def movement_seconds(self) -> float:
+        """Seconds of movement in the window (weighted, with forgetting; :func:`moving_seconds`)."""
+        return 0.0 if self.window is None else float(self.window.sums[_MOVE])
+
+    def noise_sums(self) -> tuple[FloatArray, FloatArray] | None:
+        """The window's pose-fit residual sums of squares and dofs, (2,) each (parent, child); None before any frame."""
+        if self.window is None:
+            return None
+        s = self.window.sums
+        return s[_SS : _SS + 4 : 2], s[_SS + 1 : _SS + 4 : 2]
