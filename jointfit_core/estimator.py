@@ -48,13 +48,13 @@ from .joint_sums import (
     _ZZ,
     RelativePoseSums,
 )
-from .pose import MIN_POSE_MARKERS, skew
-from .quaternion_fit import HORN_A, HORN_B, rotations_from_correlations
+from .joint_world import JointOutput, WorldOutput
+from .pose import MIN_POSE_MARKERS
+from .segment_pair import PairSet, SegmentPair, poses, poses_many, relative_poses
 from .segment_tracker import (
     COS_MAX_TURN,
     GATE_TURN_GAP_FRAMES,
     SegmentTracker,
-    VisibleSet,
     cos_turn,
     shape_ok,
 )
@@ -137,179 +137,14 @@ def _gather_indices() -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.in
 _K_IDX, _QT_IDX, _TT_IDX = _gather_indices()
 
 
-@dataclass(frozen=True, eq=False)
-class JointOutput:
-    """The joint in the world for one frame, carried by the parent's pose.
-
-    Attributes
-    ----------
-    kind : str
-        "ball" or "hinge".
-    position : ndarray, shape (3,)
-        Ball: the joint centre; hinge: the axis point nearest the parent
-        template centroid. World frame, input units.
-    cov : ndarray, shape (3, 3)
-        Its covariance: the estimate's (parent frame, rotated) plus this
-        frame's parent pose noise at that point.
-    direction : ndarray, shape (3,) or None
-        Hinge: unit axis direction, world frame (sign as the estimate's).
-    cov_direction : ndarray, shape (3, 3) or None
-        Hinge: its covariance (rank 2).
-    residual : float
-        Distance between the parent- and the child-carried joint (hinge: of
-        the parent's axis point from the child's axis line); NaN when the
-        child could not be posed in this frame.
-    rotation : ndarray, shape (3, 3) or None
-        This frame's relative rotation, child template frame to parent
-        template frame (``R_p^T R_c``; the joint angles' input,
-        :mod:`jointfit_core.joint_angles`); None when the child was not posed.
-    rotation_cov : ndarray, shape (3, 3) or None
-        Its covariance (rad^2) from this frame's two pose fits, as a left
-        perturbation in the parent template frame
-        (:func:`~jointfit_core.joint_angles.relative_rotation_cov`).
-    """
-
-    kind: str
-    position: FloatArray
-    cov: FloatArray
-    direction: FloatArray | None
-    cov_direction: FloatArray | None
-    residual: float
-    rotation: FloatArray | None = None
-    rotation_cov: FloatArray | None = None
-
-
 # --------------------------------------------------------------------------- per-frame poses
 
 
 #: Batched turn tests flag a frame as a candidate this much above the threshold: the batched poses
-#: (:func:`_poses_many`) and the cosine differ from the per-frame ones by rounding.
+#: (:func:`~jointfit_core.segment_pair.poses_many`) and the cosine differ from the per-frame ones by rounding.
 _COS_MARGIN = 1e-9
 #: Batched residual tests flag a frame as a candidate this fraction below the gate (rounding).
 _SS_MARGIN = 1e-6
-
-
-try:  # the gufunc behind np.linalg.eigh, without its Python-level checks (~3 us per call here)
-    from numpy.linalg import _umath_linalg
-
-    _eigh: Any = _umath_linalg.eigh_lo
-except (ImportError, AttributeError):  # pragma: no cover - other numpy versions
-    _eigh = np.linalg.eigh
-
-
-@dataclass(frozen=True, eq=False)
-class _PairSet:
-    """Both segments' visible sets of one frame, stacked for the batched pose fit (cached)."""
-
-    parent: VisibleSet | None
-    child: VisibleSet | None
-    xc_t: FloatArray  # (2, 3, Pmax) centred template points, zero columns for missing or padding
-    wn: FloatArray  # (2, Pmax) visible / n
-    n: FloatArray  # (2,)
-    xbar: FloatArray  # (2, 3)
-    xx: FloatArray  # (2,)
-    W_flat: FloatArray  # (72,) unit W_p and W_c, raveled (zeros when a segment is not posed)
-    dof: FloatArray  # (2,)
-    slot: int  # its row in the estimator's stacked table of pair sets (OnlineJoint._pair_table)
-
-
-def _pair_set(parent: VisibleSet | None, child: VisibleSet | None, p_max: int, slot: int) -> _PairSet:
-    xc = np.zeros((2, p_max, 3))
-    wn = np.zeros((2, p_max))
-    n = np.ones(2)
-    xbar = np.zeros((2, 3))
-    xx = np.zeros(2)
-    W = np.zeros((2, 36))
-    dof = np.zeros(2)
-    for k, vs in enumerate((parent, child)):  # two segments
-        if vs is None:
-            continue
-        xc[k, : vs.xc.shape[0]] = vs.xc
-        wn[k, vs.index] = 1.0 / vs.n
-        n[k] = vs.n
-        xbar[k] = vs.xbar
-        xx[k] = vs.xx
-        W[k] = vs.W_unit.ravel()
-        dof[k] = vs.dof
-    return _PairSet(parent, child, np.ascontiguousarray(np.swapaxes(xc, 1, 2)), wn, n, xbar, xx, W.ravel(), dof, slot)
-
-
-def _poses(Y: FloatArray, ps: _PairSet) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Least-squares poses of both segments (Horn's quaternion method, one batched ``eigh``).
-
-    Parameters
-    ----------
-    Y : ndarray, shape (2, Pmax, 3)
-        Measured world points of the parent and the child, zero where missing or padding
-        (the residual sum of squares relies on the zeros).
-    ps : _PairSet
-
-    Returns
-    -------
-    R : ndarray, shape (2, 3, 3)
-    d : ndarray, shape (2, 3)
-        ``world = R @ local + d``.
-    ss : ndarray, shape (2,)
-        Residual sums of squares ``|y - R x - d|^2`` over the visible markers,
-        ``|y - ybar|^2 + |x_c|^2 - 2 lambda_max``.
-    """
-    ybar = (ps.wn[:, None, :] @ Y)[:, 0]
-    S = ps.xc_t @ Y  # centred x: no need to centre y
-    N = (S.reshape(2, 9) @ HORN_A.T).reshape(2, 4, 4)
-    lam, V = _eigh(N)
-    q = V[:, :, 3]
-    R = ((q[:, :, None] * q[:, None, :]).reshape(2, 16) @ HORN_B.T).reshape(2, 3, 3)
-    d = ybar - (R @ ps.xbar[:, :, None])[:, :, 0]
-    yy = (Y * Y).sum(axis=(1, 2)) - ps.n * (ybar * ybar).sum(axis=1)  # Y is zero where not visible
-    ss = np.maximum(yy + ps.xx - 2.0 * lam[:, 3], 0.0)
-    return R, d, ss
-
-
-def _relative_poses(R: FloatArray, d: FloatArray) -> FloatArray:
-    """``[Q | t] = R_p^T [R_c | d_c - d_p]`` (K, 3, 4) of poses ``R`` (K, 2, 3, 3), ``d`` (K, 2, 3)."""
-    Rp_t = np.swapaxes(R[:, 0], 1, 2)
-    z = np.empty((R.shape[0], 3, 4))
-    np.matmul(Rp_t, R[:, 1], out=z[:, :, :3])
-    z[:, :, 3] = np.einsum("kij,kj->ki", Rp_t, d[:, 1] - d[:, 0])
-    return z
-
-
-def _poses_many(
-    Y: FloatArray, xc_t: FloatArray, wn: FloatArray, n: FloatArray, xbar: FloatArray, xx: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """:func:`_poses` of K posed segments at once (any frames, either side), with the largest eigenpair found without LAPACK.
-
-    Parameters
-    ----------
-    Y : ndarray, shape (K, Pmax, 3)
-        Measured points of each segment, zero where missing or padding.
-    xc_t, wn, n, xbar, xx : ndarray, shapes (K, 3, Pmax), (K, Pmax), (K,), (K, 3), (K,)
-        That segment's fields of the frame's :class:`_PairSet` (one row of each).
-
-    Returns
-    -------
-    R : ndarray, shape (K, 3, 3)
-    d : ndarray, shape (K, 3)
-    ss : ndarray, shape (K,)
-
-    Notes
-    -----
-    The same steps as :func:`_poses` on stacked arrays, except the eigen-solve:
-    :func:`~jointfit_core.quaternion_fit.largest_eigenpair` (Newton on Horn's
-    characteristic polynomial, eigenvector from the adjugate) instead of LAPACK's
-    full ``eigh``, eight times faster on blocks. The poses equal the per-frame
-    path's to ~1e-13 (rotation entries) and the residuals to ~1e-14 of the
-    point spread; each segment's result does not depend on the block it is in.
-    Only segments that can be posed belong here (an empty set has no largest
-    eigenvalue to find).
-    """
-    ybar = np.einsum("kp,kpi->ki", wn, Y)
-    S = xc_t @ Y
-    yy = np.einsum("kpi,kpi->k", Y, Y) - n * np.einsum("ki,ki->k", ybar, ybar)
-    R, lam = rotations_from_correlations(S, 0.5 * (yy + xx))
-    d = ybar - np.einsum("kij,kj->ki", R, xbar)
-    ss = np.maximum(yy + xx - 2.0 * lam, 0.0)
-    return R, d, ss
 
 
 def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple[FloatArray, float]:
@@ -952,12 +787,8 @@ class OnlineJoint:
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
         self.joint_gated_frames = 0
-        self._pairs: dict[bytes, _PairSet] = {}
-        self._table: tuple[FloatArray, ...] = ()
-        self._Y = np.zeros((0, 0, 3))
-        self._none_missing: NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
-        self._missing: NDArray[np.bool_] = self._none_missing
-        self._world_cache: dict[bytes, tuple[FloatArray, FloatArray, FloatArray, FloatArray | None, FloatArray]] = {}
+        self._pose: SegmentPair | None = None  # the two segments, from the first frame (or fixed templates)
+        self._outputs = WorldOutput(self.kind)
         tp, tc = self._templates_arg
         if tp is not None or tc is not None:
             assert self.n_markers is not None
@@ -1043,13 +874,9 @@ class OnlineJoint:
 
     def _make_segments(self, n_parent: int, n_child: int) -> None:
         self.n_markers = (n_parent, n_child)
-        self._parent = SegmentTracker("parent", n_parent, self.template_frames)
-        self._child = SegmentTracker("child", n_child, self.template_frames)
-        self._Y = np.zeros((2, max(n_parent, n_child), 3))
-        self._none_missing = np.zeros((2, max(n_parent, n_child)), dtype=bool)
-        self._missing = self._none_missing
-        self._pairs = {}
-        self._table = ()
+        self._pose = SegmentPair(n_parent, n_child, self.template_frames)
+        # (the pair's trackers, read in many places without the indirection)
+        self._parent, self._child = self._pose.parent, self._pose.child
 
     def _drop(self, reason: str) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
@@ -1089,7 +916,8 @@ class OnlineJoint:
         while frozen (not counted: expected).
         """
         self.frame_poses = None
-        if self.templates_ready and self._fast_fill(parent, child):
+        pose = self._pose
+        if pose is not None and self.templates_ready and pose.fast_fill(parent, child):
             return self._after_fill(stamp)
         yp = check_frame(parent, None if self.n_markers is None else self.n_markers[0], name="parent")
         yc = check_frame(child, None if self.n_markers is None else self.n_markers[1], name="child")
@@ -1104,7 +932,8 @@ class OnlineJoint:
                     f"{yp.shape[0]} and {yc.shape[0]}"
                 )
             self._make_segments(yp.shape[0], yc.shape[0])
-        assert self._parent is not None and self._child is not None
+        pose = self._pose
+        assert pose is not None and self._parent is not None and self._child is not None
         self.n_frames_seen += 1
 
         if not self.templates_ready:
@@ -1117,9 +946,9 @@ class OnlineJoint:
             if self.templates_ready:
                 pending, self._pending = self._pending, []
                 for p_frame, c_frame, p_stamp, p_number in pending:
-                    self._add(self._fill(p_frame, c_frame), p_stamp, p_number)
+                    self._add(pose.fill(p_frame, c_frame), p_stamp, p_number)
             return None
-        return self._add(self._fill(yp, yc), st, number)
+        return self._add(pose.fill(yp, yc), st, number)
 
     def update_many(self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None = None) -> None:
         """Add a block of frames: the state of :meth:`update` of each frame in turn, without the outputs.
@@ -1153,7 +982,7 @@ class OnlineJoint:
         :attr:`dropped`, :attr:`n_frames_seen`, the window's stamps and
         frames, and the lag-pair state end up the same; the sums equal to
         rounding (~1e-13 relative: the poses come from a vectorised
-        eigen-solve, see :func:`_poses_many`).
+        eigen-solve, see :func:`~jointfit_core.segment_pair.poses_many`).
 
         * Frames while the templates are being built (and the replay of the
           frames kept meanwhile) go through :meth:`update` itself.
@@ -1163,7 +992,7 @@ class OnlineJoint:
         * Visibility: frames are grouped by their missing-marker pattern;
           each pattern's cached pair set (the same cache as :meth:`update`)
           says whether each segment can be posed (drops counted per frame).
-        * Poses (:func:`_poses_many`) and contributions are computed for the
+        * Poses (:func:`~jointfit_core.segment_pair.poses_many`) and contributions are computed for the
           frames that enter the statistics with the per-frame operations on
           stacked arrays. The outlier gate's candidates (a superset of the
           frames it fails) go through :meth:`_add` one by one. A frame
@@ -1235,6 +1064,8 @@ class OnlineJoint:
 
     def _update_block(self, yp: FloatArray, yc: FloatArray, st: FloatArray | None) -> None:
         """:meth:`update_many` once the templates are fixed (checked frames)."""
+        pose = self._pose
+        assert pose is not None
         assert self._parent is not None and self._child is not None and self.n_markers is not None
         numbers = self._arrivals + 1 + np.arange(yp.shape[0], dtype=np.int64)
         self._arrivals += yp.shape[0]
@@ -1269,10 +1100,10 @@ class OnlineJoint:
         else:
             _, first, inverse = np.unique(flat, axis=0, return_index=True, return_inverse=True)
         inverse = inverse.reshape(m)
-        sets = [self._pair(missing[i]) for i in first]
+        sets = [pose.pair(missing[i]) for i in first]
         parent_ok = np.array([ps.parent is not None for ps in sets])[inverse]
         child_ok = np.array([ps.child is not None for ps in sets])[inverse]
-        slots = np.array([ps.slot for ps in sets])[inverse]  # each frame's pair set, as its row in _pair_table
+        slots = np.array([ps.slot for ps in sets])[inverse]  # each frame's pair set, as its row in SegmentPair.table
         for reason, ok in (("parent_not_posed", parent_ok), ("child_not_posed", child_ok)):
             bad = int(m - np.count_nonzero(ok))
             if bad:
@@ -1327,6 +1158,8 @@ class OnlineJoint:
           next frame that poses it is tested again against the references as
           they then are.
         """
+        pose = self._pose
+        assert pose is not None
         m = Y.shape[0]
         entered = parent_ok & child_ok
         if self._frozen:
@@ -1349,10 +1182,10 @@ class OnlineJoint:
         shapes: list[BlockJumps] = []  # per segment, the jumps of the rows that pose it
         if rows.size:
             assert self._parent is not None and self._child is not None
-            fields = self._pair_table()
+            fields = pose.table()
             seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
             Y_seg = Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side]
-            Rs, ds, sss = _poses_many(Y_seg, *self._pose_fields(seg))
+            Rs, ds, sss = poses_many(Y_seg, *pose.pose_fields(seg))
             R.reshape(-1, 3, 3)[posed] = Rs
             d.reshape(-1, 3)[posed] = ds
             ss.reshape(-1)[posed] = sss
@@ -1376,10 +1209,10 @@ class OnlineJoint:
                 Rk = Rs[side == k]
                 close = np.diff(numbers[rows[pos]]) <= GATE_TURN_GAP_FRAMES
                 candidate[pos[1:]] |= close & (cos_turn(Rk[1:], Rk[:-1]) < COS_MAX_TURN + _COS_MARGIN)
-                candidate[pos[0]] |= self._tracker(k).turns(Rk[0], int(numbers[rows[pos[0]]]), _COS_MARGIN)
+                candidate[pos[0]] |= pose.tracker(k).turns(Rk[0], int(numbers[rows[pos[0]]]), _COS_MARGIN)
             if self._joint.armed:  # the joint test, each frame against the one before it (a superset)
                 both = np.flatnonzero(posed_ok.all(axis=1))
-                score = self._joint.scores_of(_relative_poses(R[both], d[both]), numbers[rows[both]])
+                score = self._joint.scores_of(relative_poses(R[both], d[both]), numbers[rows[both]])
                 candidate[both[score > (1.0 - _SS_MARGIN) * self._joint.limit]] = True
             sequential[rows[candidate]] = True
         queue = np.flatnonzero(sequential).tolist()  # a heap: frames to take one by one, oldest first
@@ -1396,7 +1229,7 @@ class OnlineJoint:
                     before_in[0] = bool(entered[run[0] - 1])
                 pos = np.searchsorted(rows, run)  # the run's rows among the posed ones
                 if self._joint.residual is not None:
-                    z = _relative_poses(R[pos], d[pos])
+                    z = relative_poses(R[pos], d[pos])
                     self._joint.passed(z, numbers[run], self._joint.scores_of(z, numbers[run]), False)
                 self._push_block(Y[run], slots[run], before_in, st, run, numbers, (R[pos], d[pos], ss[pos]))
             if start < f:
@@ -1406,12 +1239,12 @@ class OnlineJoint:
                     seg = seg_rows[k]
                     i = int(np.searchsorted(seg, hi)) - 1  # the run's last row that poses segment k
                     if i >= 0 and seg[i] >= lo:
-                        self._tracker(k).set_reference(R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
+                        pose.tracker(k).set_reference(R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
                     if shapes:
                         shapes[k].passed(int(np.searchsorted(seg, lo)), i + 1)
             if f == m:
                 break
-            self._Y[...] = Y[f]
+            pose.Y[...] = Y[f]
             counted = (not bool(parent_ok[f]), not bool(child_ok[f]))
             self._add(missing[f], None if st is None else float(st[f]), int(numbers[f]), counted)
             after = int(np.searchsorted(rows, f, side="right"))
@@ -1420,7 +1253,7 @@ class OnlineJoint:
                 i = int(np.searchsorted(seg, after))  # the next row that poses segment k
                 if i < seg.size:
                     g = int(rows[seg[i]])
-                    if g not in queued and self._tracker(k).turns(R[seg[i], k], int(numbers[g]), _COS_MARGIN):
+                    if g not in queued and pose.tracker(k).turns(R[seg[i], k], int(numbers[g]), _COS_MARGIN):
                         heapq.heappush(queue, g)
                         queued.add(g)
                 if shapes and i > 0 and seg[i - 1] == after - 1:  # frame f posed segment k
@@ -1433,36 +1266,12 @@ class OnlineJoint:
                 nxt = f + 1 + np.flatnonzero(entered[f + 1 :])[:2]
                 if nxt.size:
                     at_rows = np.searchsorted(rows, nxt)
-                    score = self._joint.scores_of(_relative_poses(R[at_rows], d[at_rows]), numbers[nxt])
+                    score = self._joint.scores_of(relative_poses(R[at_rows], d[at_rows]), numbers[nxt])
                     for g in nxt[score > (1.0 - _SS_MARGIN) * self._joint.limit].tolist():
                         if g not in queued:
                             heapq.heappush(queue, g)
                             queued.add(g)
             start = f + 1
-
-    def _pair_table(self) -> tuple[FloatArray, ...]:
-        """Every cached pair set's ``xc_t, wn, n, xbar, xx, dof, W_flat`` stacked, row ``ps.slot``, for gathers by frame.
-
-        Then the first five side by side per segment, ``(2 slots, 5 Pmax + 5)``, row ``2 slot + side``
-        (:meth:`_pose_fields`).
-
-        Rebuilt only when pair sets were added (a new visibility pattern), not per block.
-        """
-        if not self._table or self._table[0].shape[0] != len(self._pairs):
-            sets = list(self._pairs.values())
-            names = ("xc_t", "wn", "n", "xbar", "xx", "dof", "W_flat")
-            table = [np.stack([getattr(ps, name) for ps in sets]) for name in names]
-            # the pose fit's fields side by side, one row per (slot, side): one gather per block
-            rows = 2 * len(sets)
-            table.append(np.concatenate([f.reshape(rows, -1) for f in table[:5]], axis=1))
-            self._table = tuple(table)
-        return self._table
-
-    def _pose_fields(self, seg: NDArray[np.intp]) -> tuple[FloatArray, ...]:
-        """:func:`_poses_many`'s ``xc_t, wn, n, xbar, xx`` of the segments at rows ``seg`` (``2 slot + side``) of the table."""
-        g = self._pair_table()[7][seg]
-        p = self._Y.shape[1]
-        return g[:, : 3 * p].reshape(-1, 3, p), g[:, 3 * p : 4 * p], g[:, 4 * p], g[:, 4 * p + 1 : 4 * p + 4], g[:, 4 * p + 4]
 
     def _push_block(
         self,
@@ -1477,42 +1286,21 @@ class OnlineJoint:
         """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair sets of slots ``which``) and push them.
 
         ``rows``: their indices in the block; ``numbers``: the block's frame numbers (the times of
-        frames without stamps). ``poses``: their ``(R, d, ss)`` from :func:`_poses_many` when already computed.
+        frames without stamps). ``poses``: their ``(R, d, ss)`` from :func:`~jointfit_core.segment_pair.poses_many` when already computed.
         """
+        pose = self._pose
+        assert pose is not None
         m = Y.shape[0]
         if poses is None:
             seg = (2 * which[:, None] + np.arange(2)).ravel()
-            R, d, ss = _poses_many(Y.reshape(2 * m, *Y.shape[2:]), *self._pose_fields(seg))
+            R, d, ss = poses_many(Y.reshape(2 * m, *Y.shape[2:]), *pose.pose_fields(seg))
             poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
         R, d, ss = poses
         stamps = None if st is None else st[rows]
         times = stamps if stamps is not None else numbers[rows] / NOMINAL_RATE_HZ
-        table = self._pair_table()
+        table = pose.table()
         self._stats.add_block(R, d, ss, table[6], table[5], which, paired, stamps, np.asarray(times, dtype=np.float64))
         self._version += 1
-
-    def _fast_fill(self, parent: ArrayLike, child: ArrayLike) -> bool:
-        """Copy a well-shaped frame straight into the pose buffer; False to take the checked path.
-
-        Steady-state fast path: one finiteness test for both segments instead of two frame checks.
-        Leaves ``self._missing`` set. Raises InputError for infinite values.
-        """
-        assert self.n_markers is not None
-        if not (isinstance(parent, np.ndarray) and isinstance(child, np.ndarray)):
-            return False
-        if parent.shape != (self.n_markers[0], 3) or child.shape != (self.n_markers[1], 3):
-            return False
-        Y = self._Y
-        Y[0, : self.n_markers[0]] = parent
-        Y[1, : self.n_markers[1]] = child
-        finite = np.isfinite(Y)
-        if finite.all():
-            self._missing = self._none_missing
-            return True
-        if np.isinf(Y).any():
-            raise InputError("parent, child: contain inf; use NaN for missing markers")
-        self._missing = np.asarray(~finite.all(axis=2), dtype=bool)
-        return True
 
     def _arrive(self) -> int:
         """Number a frame that arrived (well-formed, whatever its stamp): the turn test's clock."""
@@ -1534,36 +1322,14 @@ class OnlineJoint:
         return True, st
 
     def _after_fill(self, stamp: float | None) -> JointOutput | None:
+        pose = self._pose
+        assert pose is not None
         number = self._arrive()
         ok, st = self._accept_stamp(stamp)
         if not ok:
             return None
         self.n_frames_seen += 1
-        return self._add(self._missing, st, number)
-
-    def _fill(self, yp: FloatArray, yc: FloatArray) -> NDArray[np.bool_]:
-        """Copy checked frames into the pose buffer; return the missing-marker mask (2, Pmax)."""
-        Y = self._Y
-        Y[0, : yp.shape[0]] = yp
-        Y[1, : yc.shape[0]] = yc
-        missing: NDArray[np.bool_] = np.isnan(Y[:, :, 0])
-        return missing
-
-    def _pair(self, missing: NDArray[np.bool_]) -> _PairSet:
-        """Cached pair set for the missing-marker mask (2, Pmax) of ``self._Y`` (padding rows count as present)."""
-        key = missing.tobytes()
-        ps = self._pairs.get(key)
-        if ps is None:
-            assert self._parent is not None and self._child is not None
-            pa, pc = self._parent.n_markers, self._child.n_markers
-            ps = _pair_set(
-                self._parent.visible_set(~missing[0, :pa]),
-                self._child.visible_set(~missing[1, :pc]),
-                max(pa, pc),
-                len(self._pairs),
-            )
-            self._pairs[key] = ps
-        return ps
+        return self._add(pose.missing, st, number)
 
     def _gate_var(self) -> FloatArray | None:
         """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
@@ -1616,41 +1382,10 @@ class OnlineJoint:
                 sigma[k] = fixed
         return sigma
 
-    def _tracker(self, k: int) -> SegmentTracker:
-        """Segment ``k``'s tracker (0 parent, 1 child; the templates' segments exist)."""
-        seg = self._parent if k == 0 else self._child
-        assert seg is not None
-        return seg
-
-    def _shape_tests(
-        self, ps: _PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: bool
-    ) -> tuple[list[FloatArray | None], list[float], list[bool]]:
-        """Per segment of a posed frame: its markers in the template frame, its jump and whether it fails the gate.
-
-        :meth:`~jointfit_core.segment_tracker.SegmentTracker.shape_test` of each posed segment.
-        """
-        local: list[FloatArray | None] = [None, None]
-        jumps = [np.inf, np.inf]
-        fails = [False, False]
-        Y = self._Y
-        for k, vs in enumerate((ps.parent, ps.child)):
-            if vs is not None:
-                seg = self._tracker(k)
-                n = vs.index.size
-                y = Y[k, :n] if n == seg.n_markers else Y[k, vs.index]  # all visible: its rows as they are
-                local[k], jumps[k], fails[k] = seg.shape_test(y, vs, R[k], d[k], float(ss[k]), frame_no, refit)
-        return local, jumps, fails
-
-    def _seen(self, ps: _PairSet, local: list[FloatArray | None], frame_no: int) -> None:
-        """Keep each posed segment's markers of this frame (before the gate) for the next frame's test."""
-        for k, (vs, lk) in enumerate(((ps.parent, local[0]), (ps.child, local[1]))):
-            if vs is not None and lk is not None:
-                self._tracker(k).shape.seen(vs.index, lk, frame_no, vs.code)
-
     def _gated(
         self,
         missing: NDArray[np.bool_],
-        ps: _PairSet,
+        ps: PairSet,
         fail: NDArray[np.bool_],
         active: tuple[bool, bool],
         frame_no: int,
@@ -1667,12 +1402,14 @@ class OnlineJoint:
         markers counted as ``<segment>_gated_markers``); without one it loses all its
         markers (not posed; counted as ``<segment>_gated``).
         """
+        pose = self._pose
+        assert pose is not None
         out = missing.copy()
         for k, vs in enumerate((ps.parent, ps.child)):
-            seg = self._tracker(k)
+            seg = pose.tracker(k)
             if not fail[k] or vs is None or seg.template is None:
                 continue
-            drop = seg.leave_out(self._Y[k, vs.index], vs, active[k], frame_no)
+            drop = seg.leave_out(pose.Y[k, vs.index], vs, active[k], frame_no)
             seg.gated_frames += 1
             if self.gate_log is not None:
                 self.gate_log.append((frame_no, k, np.nan if stamp is None else stamp))
@@ -1692,15 +1429,17 @@ class OnlineJoint:
         counted: tuple[bool, bool] = (False, False),
         refit: bool = False,
     ) -> JointOutput | None:
-        """Pose both segments from ``self._Y`` (filled, ``missing`` rows NaN) and update the statistics.
+        """Pose both segments from the pair's marker buffer ``Y`` (filled, ``missing`` rows NaN) and update the statistics.
 
         ``frame_no``: the frame's number (1-based count of the frames seen, for the gate's turn
         test). ``counted``: segments already counted as not posed for this frame (a refit after
         the gate). ``refit``: the call after the gate left markers out (the frame's markers
         before the gate are kept for the next frame's test by the first call only).
         """
+        pose = self._pose
+        assert pose is not None
         assert self._parent is not None and self._child is not None
-        ps = self._pair(missing)
+        ps = pose.pair(missing)
         if ps.parent is None and not counted[0]:
             self._drop("parent_not_posed")
         if ps.child is None and not counted[1]:
@@ -1708,14 +1447,14 @@ class OnlineJoint:
         if ps.parent is None and ps.child is None:
             self._stats.chained = False
             return None
-        Y = self._Y
-        if missing is not self._none_missing:
+        Y = pose.Y
+        if missing is not pose.none_missing:
             Y[missing] = 0.0  # _poses needs zeros where a marker is missing
-        R, d, ss = _poses(Y, ps)
+        R, d, ss = poses(Y, ps)
         self.frame_poses = (R, d, (ps.parent is not None, ps.child is not None))  # a refit below replaces it
         gate_var = self._gate_var()
         if gate_var is not None:
-            local, jumps, fails = self._shape_tests(ps, R, d, ss, frame_no, refit)
+            local, jumps, fails = pose.shape_tests(ps, R, d, ss, frame_no, refit)
             fail_p, fail_c = fails
             active = (self._parent.turn_active(frame_no), self._child.turn_active(frame_no))
             turned = [False, False]
@@ -1723,19 +1462,19 @@ class OnlineJoint:
             for k, (vs, fail) in enumerate(((ps.parent, fail_p), (ps.child, fail_c))):
                 if not active[k] or vs is None:
                     continue
-                seg = self._tracker(k)
+                seg = pose.tracker(k)
                 cos = float(cos_turn(R[k], seg.ref_R))
                 if not (fail or cos < COS_MAX_TURN):
                     continue
                 # (here: a refit clears the markers it leaves out)
-                labels[k] = seg.relabelling(self._Y[k, vs.index], vs, frame_no)
+                labels[k] = seg.relabelling(pose.Y[k, vs.index], vs, frame_no)
                 # a rigid turn that is not a relabelling: the segment jumped (the recording
                 # restarts, another subject): no swap to hold out, the reference starts afresh
                 turned[k] = cos < COS_MAX_TURN and (fail or labels[k] is not None)
             if fail_p or fail_c or turned[0] or turned[1]:
                 failed = (fail_p or turned[0], fail_c or turned[1])
                 follow = [
-                    (k, self._Y[k, vs.index].copy(), lab)
+                    (k, pose.Y[k, vs.index].copy(), lab)
                     for k, (vs, lab) in enumerate(((ps.parent, labels[0]), (ps.child, labels[1])))
                     if failed[k] and vs is not None and lab is not None
                 ]
@@ -1744,14 +1483,14 @@ class OnlineJoint:
                 # a segment held out whose markers are its reference's relabelled (a swap): the
                 # reference follows the limb through the swap
                 for k, y, lab in follow:
-                    if self._tracker(k).ref_frame != frame_no:
-                        self._tracker(k).follow(y, lab, frame_no)
+                    if pose.tracker(k).ref_frame != frame_no:
+                        pose.tracker(k).follow(y, lab, frame_no)
                 for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
                     lk = local[k]
                     if failed[k] and vs is not None and lk is not None:
                         seg.shape.failed(vs.index, lk, frame_no, vs.code)  # provisional reference
                 if not refit:
-                    self._seen(ps, local, frame_no)
+                    pose.seen(ps, local, frame_no)
                 return out
             for k, (seg, vs) in enumerate(((self._parent, ps.parent), (self._child, ps.child))):
                 lk = local[k]
@@ -1759,7 +1498,7 @@ class OnlineJoint:
                     seg.set_reference(R[k], d[k], frame_no)
                     seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code)
             if not refit:
-                self._seen(ps, local, frame_no)
+                pose.seen(ps, local, frame_no)
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
             if self._joint_fails(R, d, frame_no, stamp):
                 self._stats.chained = False
@@ -1773,7 +1512,7 @@ class OnlineJoint:
         if ps.parent is None or self._solution is None:
             return None
         child_pose = (R[1], d[1], ps.child) if ps.child is not None else None
-        return self._world(R[0], d[0], ps.parent, child_pose)
+        return self._outputs.output(self._solution, self._sigma, R[0], d[0], ps.parent, child_pose)
 
     def _joint_fails(self, R: FloatArray, d: FloatArray, frame_no: int, stamp: float | None) -> bool:
         """The joint test (:mod:`jointfit_core.joint_gate`) of a frame posed ``R`` (2, 3, 3), ``d`` (2, 3); counts a failure."""
@@ -1988,56 +1727,8 @@ class OnlineJoint:
         self._statistical = result.statistical
         self._artefact_scale = result.artefact_scale
         self._solved_version = result.version
-        self._world_cache = {}
+        self._outputs.clear()
         self._joint.arm(self._solution, self.length_scale)
-
-    def _world(
-        self,
-        Rp: FloatArray,
-        dp: FloatArray,
-        vp: VisibleSet,
-        child_pose: tuple[FloatArray, FloatArray, VisibleSet] | None,
-    ) -> JointOutput:
-        sol = self._solution
-        assert sol is not None
-        key = vp.index.tobytes()
-        cached = self._world_cache.get(key)
-        if cached is None:
-            s2 = self._sigma[0] ** 2
-            if isinstance(sol, PoseSumsCentre):
-                local, local_cov, other = sol.centre_parent, sol.cov_parent, sol.centre_child
-            else:
-                local, local_cov, other = sol.point_parent, sol.cov_point_parent, sol.point_child
-            J = np.concatenate([-skew(local), np.eye(3)], axis=1)
-            cov_dir = None
-            if isinstance(sol, PoseSumsAxis):
-                Nx = skew(sol.direction_parent)
-                cov_dir = sol.cov_direction_parent + s2 * (Nx @ vp.W_unit[:3, :3] @ Nx.T)
-            # (the parent's part of the rotation's covariance, below, is this visible set's too)
-            cached = (local, local_cov + s2 * (J @ vp.W_unit @ J.T), other, cov_dir, s2 * vp.W_unit[:3, :3])
-            self._world_cache[key] = cached
-        local, cov_local, other, cov_dir_local, rot_cov_parent = cached
-        position = Rp @ local + dp
-        cov = Rp @ cov_local @ Rp.T
-        residual = float("nan")
-        direction = cov_dir = None
-        Q = Q_cov = None
-        if cov_dir_local is not None:
-            assert isinstance(sol, PoseSumsAxis)
-            direction = Rp @ sol.direction_parent
-            cov_dir = Rp @ cov_dir_local @ Rp.T
-        if child_pose is not None:
-            Rc, dc, vc = child_pose
-            diff = position - (Rc @ other + dc)
-            if direction is not None:
-                assert isinstance(sol, PoseSumsAxis)
-                axis_c = Rc @ sol.direction_child
-                diff = diff - axis_c * (diff @ axis_c)
-            residual = math.sqrt(float(diff @ diff))  # (the same correctly rounded square root as np.sqrt)
-            Q = Rp.T @ Rc
-            # the poses' rotation errors (local frames) as one left perturbation of Q (joint_angles.relative_rotation_cov)
-            Q_cov = rot_cov_parent + self._sigma[1] ** 2 * (Q @ vc.W_unit[:3, :3] @ Q.T)
-        return JointOutput(self.kind, position, cov, direction, cov_dir, residual, Q, Q_cov)
 
     # ------------------------------------------------------------------ calibration
 
@@ -2190,7 +1881,7 @@ class OnlineJoint:
             est._artefact_scale = scale  # (saved again as loaded: a save after a restart writes the same file)
             matched = data.get("point_child_matched")  # absent before it existed
             est._matched = None if matched is None else check_vector3(matched, name="point_child_matched")
-            est._world_cache = {}
+            est._outputs.clear()
             est._joint.arm(est._solution, est.length_scale)
         except InputError:
             raise

@@ -16,13 +16,13 @@ The layout of the sums vector is defined here (``_Z`` ... ``_FM``); the solve
 from __future__ import annotations
 
 import math
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .artefact_sums import N_FEATURE_MOMENTS, N_FEATURE_SUMS, feature_sums, feature_sums_into
 from .errors import InputError
+from .segment_pair import PairSet
 from .serial import (
     LAG_TOLERANCE,
     N_TIME_LAG_SUMS,
@@ -84,18 +84,6 @@ def moving_seconds(lagged: FloatArray) -> FloatArray:
     return out
 
 
-class PosedPair(Protocol):
-    """What a frame's contribution needs of its visible marker sets (``_PairSet`` of the estimator)."""
-
-    @property
-    def W_flat(self) -> FloatArray:  # noqa: N802 (the pose covariance W, as in Stoddart et al.)
-        """(72,) unit W_p and W_c, raveled."""
-
-    @property
-    def dof(self) -> FloatArray:
-        """(2,) pose-fit degrees of freedom of the parent and the child."""
-
-
 class RelativePoseSums:
     """A joint's sliding window of relative-pose sums, fed frame by frame or block by block.
 
@@ -128,7 +116,7 @@ class RelativePoseSums:
         c = np.zeros(self.n_sums)
         c[0] = 1.0
         self._contribution = c
-        self._pairs: PosedPair | None = None  # the pair set whose W and dofs the contribution holds
+        self._pairs: PairSet | None = None  # the pair set whose W and dofs the contribution holds
         # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
         self._z_view = c[_Z].reshape(3, 4)
         self._zf_view = c[_Z]
@@ -148,7 +136,7 @@ class RelativePoseSums:
         return self.window
 
     def add_frame(
-        self, R: FloatArray, d: FloatArray, ss: FloatArray, pairs: PosedPair, stamp: float | None, frame_no: int
+        self, R: FloatArray, d: FloatArray, ss: FloatArray, pairs: PairSet, stamp: float | None, frame_no: int
     ) -> None:
         """Push one frame whose two segments are posed.
 
@@ -160,7 +148,7 @@ class RelativePoseSums:
             Their translations (input units).
         ss : ndarray, shape (2,)
             Their pose fits' residual sums of squares (input units squared).
-        pairs : PosedPair
+        pairs : PairSet
             The frame's visible marker sets (their unit pose covariances and dofs).
         stamp : float or None
             Seconds; without one, the frame's time is ``frame_no`` at the nominal rate.
