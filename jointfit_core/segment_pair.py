@@ -24,9 +24,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import InputError
 from .quaternion_fit import HORN_A, HORN_B, rotations_from_correlations
-from .segment_tracker import SegmentTracker, VisibleSet
+from .segment_tracker import COS_MAX_TURN, SegmentTracker, VisibleSet, cos_turn
 
-__all__ = ["PairSet", "SegmentPair", "pair_set", "poses", "poses_many", "relative_poses"]
+__all__ = ["GateVerdict", "PairSet", "SegmentPair", "pair_set", "poses", "poses_many", "relative_poses"]
 
 FloatArray = NDArray[np.float64]
 
@@ -152,6 +152,16 @@ def poses_many(
     d = ybar - np.einsum("kij,kj->ki", R, xbar)
     ss = np.maximum(yy + xx - 2.0 * lam, 0.0)
     return R, d, ss
+
+
+@dataclass(frozen=True, eq=False)
+class GateVerdict:
+    """Why a posed frame failed the outlier gate, and what to do after its refit (:meth:`SegmentPair.judge`)."""
+
+    failed: tuple[bool, bool]  # per segment (parent, child): it failed a shape or a turn test
+    active: tuple[bool, bool]  # per segment: its turn test applied (a recent reference)
+    local: list[FloatArray | None]  # per segment: its markers in the template frame, before the gate
+    follow: list[tuple[int, FloatArray, NDArray[np.intp]]]  # (segment, its markers, the relabelling) of swaps
 
 
 class SegmentPair:
@@ -284,3 +294,104 @@ class SegmentPair:
         for k, (vs, lk) in enumerate(((ps.parent, local[0]), (ps.child, local[1]))):
             if vs is not None and lk is not None:
                 self.tracker(k).shape.seen(vs.index, lk, frame_no, vs.code)
+
+    def judge(self, ps: PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: bool) -> GateVerdict | None:
+        """The outlier gate's per-segment tests of a posed frame: None when it passes (references moved on).
+
+        Parameters
+        ----------
+        ps : PairSet
+            The frame's visible sets; :attr:`Y` holds its markers (zeros where missing).
+        R, d, ss : ndarray, shapes (2, 3, 3), (2, 3), (2,)
+            Both segments' poses and pose-fit residual sums of squares (:func:`poses`).
+        frame_no : int
+            The frame's number (the turn test's clock).
+        refit : bool
+            The call after the gate left markers out (the frame's markers before the gate are kept
+            for the next frame's test by the first call only).
+
+        Returns
+        -------
+        GateVerdict or None
+            A segment fails when its markers jumped or its residual is too large
+            (:meth:`~jointfit_core.segment_tracker.SegmentTracker.shape_test`), or when it turned by
+            more than :data:`~jointfit_core.segment_tracker.GATE_MAX_TURN_DEG` from its reference
+            while its turn test is active and the turn is a relabelling or comes with a failed
+            shape test (a rigid turn without either: the segment jumped, its reference starts
+            afresh). On a pass, each posed segment's turn and shape references move to this frame.
+        """
+        local, jumps, fails = self.shape_tests(ps, R, d, ss, frame_no, refit)
+        active = (self.parent.turn_active(frame_no), self.child.turn_active(frame_no))
+        turned = [False, False]
+        labels: list[NDArray[np.intp] | None] = [None, None]
+        for k, vs in enumerate((ps.parent, ps.child)):
+            if not active[k] or vs is None:
+                continue
+            seg = self.tracker(k)
+            cos = float(cos_turn(R[k], seg.ref_R))
+            if not (fails[k] or cos < COS_MAX_TURN):
+                continue
+            # (here: a refit clears the markers it leaves out)
+            labels[k] = seg.relabelling(self.Y[k, vs.index], vs, frame_no)
+            # a rigid turn that is not a relabelling: the segment jumped (the recording
+            # restarts, another subject): no swap to hold out, the reference starts afresh
+            turned[k] = cos < COS_MAX_TURN and (fails[k] or labels[k] is not None)
+        if fails[0] or fails[1] or turned[0] or turned[1]:
+            failed = (fails[0] or turned[0], fails[1] or turned[1])
+            follow = [
+                (k, self.Y[k, vs.index].copy(), lab)
+                for k, (vs, lab) in enumerate(((ps.parent, labels[0]), (ps.child, labels[1])))
+                if failed[k] and vs is not None and lab is not None
+            ]
+            return GateVerdict(failed, active, local, follow)
+        for k, vs in enumerate((ps.parent, ps.child)):
+            lk = local[k]
+            if vs is not None and lk is not None:
+                seg = self.tracker(k)
+                seg.set_reference(R[k], d[k], frame_no)
+                seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code)
+        if not refit:
+            self.seen(ps, local, frame_no)
+        return None
+
+    def hold_out(
+        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int
+    ) -> tuple[NDArray[np.bool_], list[tuple[int, int | None]]]:
+        """The missing-marker mask after the gate, and per failing segment how many markers it lost.
+
+        A failing segment keeps the subset of its markers that
+        :meth:`~jointfit_core.segment_tracker.SegmentTracker.leave_out` finds; without one it loses
+        all its markers (not posed). Returns the new mask (2, Pmax) and ``(segment, markers left
+        out, or None for all)`` per failing segment; each such segment counts a gated frame.
+        """
+        out = missing.copy()
+        held: list[tuple[int, int | None]] = []
+        for k, vs in enumerate((ps.parent, ps.child)):
+            seg = self.tracker(k)
+            if not verdict.failed[k] or vs is None or seg.template is None:
+                continue
+            drop = seg.leave_out(self.Y[k, vs.index], vs, verdict.active[k], frame_no)
+            seg.gated_frames += 1
+            if drop is None:
+                out[k, : seg.n_markers] = True
+                held.append((k, None))
+            else:
+                out[k, vs.index[list(drop)]] = True
+                held.append((k, len(drop)))
+        return out, held
+
+    def after_refit(self, ps: PairSet, verdict: GateVerdict, frame_no: int, refit: bool) -> None:
+        """After the refit of a frame that failed: references follow a swap, the failed shapes are kept provisionally.
+
+        A segment held out whose markers are its reference's relabelled (a swap): its turn
+        reference follows the limb through the swap (unless the refit set it in this frame).
+        """
+        for k, y, lab in verdict.follow:
+            if self.tracker(k).ref_frame != frame_no:
+                self.tracker(k).follow(y, lab, frame_no)
+        for k, vs in enumerate((ps.parent, ps.child)):
+            lk = verdict.local[k]
+            if verdict.failed[k] and vs is not None and lk is not None:
+                self.tracker(k).shape.failed(vs.index, lk, frame_no, vs.code)  # provisional reference
+        if not refit:
+            self.seen(ps, verdict.local, frame_no)
