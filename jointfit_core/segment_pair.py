@@ -56,6 +56,12 @@ class PairSet:
 
 
 def pair_set(parent: VisibleSet | None, child: VisibleSet | None, p_max: int, slot: int) -> PairSet:
+    """Stack both segments' visible sets (None: that segment cannot be posed) for :func:`poses`.
+
+    ``p_max``: the larger marker count (the rows of the frame buffer); ``slot``: the pair set's row
+    in :meth:`SegmentPair.table`. A segment that cannot be posed has zero columns and weights, ``n``
+    1 and zero ``W`` and dof.
+    """
     xc = np.zeros((2, p_max, 3))
     wn = np.zeros((2, p_max))
     n = np.ones(2)
