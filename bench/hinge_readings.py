@@ -33,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _paper_helpers import elapsed_line, fmt, mahalanobis_rank, markdown_table, print_and_write, run_header
 from skeleton_runs import run_stream
 
-import jointfit_core.estimator as estimator_mod
 from jointfit_core.artefact_sums import SumsArtefact, artefact_from_sums
+from jointfit_core.estimator import solve_window
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.skeleton_sta import skeleton_skin_frames, sta_amplitudes
 from jointfit_core.skeleton_truth import make_skeleton
@@ -44,6 +44,8 @@ SCRIPT = "hinge_readings.py"
 SEED = 0  # the streams are seeded by --seeds, as test_skeleton_sta.py
 SECONDS, RATE = 20.0, 100.0
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "lower_body.yaml"
+#: The module whose solve_window calls artefact_from_sums (estimator.py, or the module it moved to).
+SOLVER_MODULE = sys.modules[solve_window.__module__]
 HEADER = ("skin follows", "seed", "hinge", "scale (mm/rad)", "point reading (mm/rad)", "set by", "error (deg)", "sd (deg)", "e/2")
 DRIVERS: dict[str, dict[str, tuple[str, ...]] | None] = {
     "adjacent joints": None,
@@ -67,7 +69,7 @@ def run(seeds: Sequence[int]) -> list[list[str]]:
     """One row per (drivers, seed, hinge)."""
     rows = []
     calls: list[tuple[float, float]] = []
-    estimator_mod.artefact_from_sums = _recording(calls)  # type: ignore[assignment]
+    SOLVER_MODULE.artefact_from_sums = _recording(calls)  # type: ignore[attr-defined]
     try:
         for label, drivers in DRIVERS.items():
             for seed in seeds:
@@ -80,7 +82,7 @@ def run(seeds: Sequence[int]) -> list[list[str]]:
                     if est.kind != "hinge":
                         continue
                     calls.clear()
-                    res = estimator_mod.solve_window(est.request_for(est._entered_sums().copy()))
+                    res = solve_window(est.request_for(est._entered_sums().copy()))
                     total, point = calls[-1]
                     template = est.templates[0]
                     assert template is not None
@@ -95,7 +97,7 @@ def run(seeds: Sequence[int]) -> list[list[str]]:
                     rows.append([label, str(seed), r.cfg.name, fmt(1e3 * total), fmt(1e3 * point),
                                  "alignment" if total > point * (1.0 + 1e-9) else "point", fmt(err), fmt(sd), fmt(e)])  # fmt: skip
     finally:
-        estimator_mod.artefact_from_sums = artefact_from_sums
+        SOLVER_MODULE.artefact_from_sums = artefact_from_sums  # type: ignore[attr-defined]
     return rows
 
 
