@@ -14,7 +14,7 @@ jointfit node heard), watches several nodes (one per subject,
 its node's full name; ``--once`` waits for a round of every named node (with
 ``--all``: until the first node heard is heard a third time, every node a second
 time and every ``/diagnostics`` publisher in the ROS graph heard or silent for 3 s,
-or ``--timeout``). ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
+the graph watched for at least 3 s, or ``--timeout``). ``call`` calls ``<node>/reset`` (std_srvs/Trigger),
 ``<node>/freeze`` (std_srvs/SetBool, default true) or ``<node>/save``
 (std_srvs/Trigger) and prints the node's answer.
 
@@ -263,6 +263,7 @@ class StatusRounds:
         self.pending: list[tuple[str, list[str]]] = []  # new rounds not printed yet
         self.publishers: dict[str, float] = {}  # /diagnostics publishers in the graph -> when first seen (s)
         self.graph_changed = 0.0  # when a publisher last appeared (s)
+        self.started: float | None = None  # when the graph was first looked at (s)
 
     @property
     def many(self) -> bool:
@@ -284,6 +285,8 @@ class StatusRounds:
 
     def note_graph(self, publishers: Sequence[str], now: float) -> None:
         """Take the full names of the nodes that publish ``/diagnostics`` now (from the ROS graph), at ``now`` s."""
+        if self.started is None:
+            self.started = now
         for node in publishers:
             if node not in self.publishers:
                 self.publishers[node] = now
@@ -293,17 +296,21 @@ class StatusRounds:
         """One round of every node: each named node heard; or (every node) the first node heard heard three
         times, every node heard twice, and every ``/diagnostics`` publisher in the graph either heard or
         silent for :attr:`QUIET` s since it appeared (not a jointfit node), the graph unchanged for
-        :attr:`SETTLE` s. A node discovered later than another is still waited for: DDS discovery of a
-        participant can take seconds on a loaded machine."""
+        :attr:`SETTLE` s and looked at for :attr:`DISCOVERY` s. A node discovered later than another is
+        still waited for: DDS discovery of a participant can take seconds on a loaded machine (a node
+        not yet in the graph when the first node had spoken three times was left out, 2026-12-02)."""
         if not self.every:
             return all(node in self.first for node in self.nodes)
         counts = list(self.heard.values())
         if not counts or counts[0] <= 2 or min(counts) <= 1 or now - self.graph_changed < self.SETTLE:
             return False
+        if self.started is not None and now - self.started < self.DISCOVERY:
+            return False
         return all(node in self.heard or now - seen >= self.QUIET for node, seen in self.publishers.items())
 
     QUIET = 3.0  # s a /diagnostics publisher may stay silent before it is taken for another kind of node
     SETTLE = 1.0  # s without a new /diagnostics publisher before --all --once prints
+    DISCOVERY = 3.0  # s --all --once looks at the ROS graph at least (the other nodes' discovery)
 
     def missing(self) -> list[str]:
         """The named nodes not heard yet (every node: none heard at all, ``["any jointfit node"]``)."""

@@ -164,6 +164,16 @@ def test_status_rounds_every_node_waits_for_each_diagnostics_publisher_in_the_gr
     for arr in (a, a, a):
         silent.add(arr)
     assert not silent.complete(now=2.9) and silent.complete(now=3.0)  # b never speaks: printed without it
+    early = StatusRounds(None)
+    early.note_graph(["/subject_a/jointfit"], now=0.0)  # b's participant not discovered yet
+    for arr in (a, a, a):
+        early.add(arr)
+    assert not early.complete(now=2.0)  # a heard three times, the graph settled: still too early to know b is not there
+    early.note_graph(["/subject_a/jointfit", "/subject_b/jointfit"], now=2.5)
+    early.add(b)
+    early.add(b)
+    assert not early.complete(now=3.0) and early.complete(now=3.5)  # (b appeared 0.5 s ago: the graph settles first)
+    assert early.nodes == ["/subject_a/jointfit", "/subject_b/jointfit"]
 
 
 def _node(tmp_path: Path, *ros_args: str) -> subprocess.CompletedProcess[str]:
