@@ -1533,9 +1533,9 @@ def fit_axis_two_segments(
     the second-order bias from the noisy poses is removed as in
     :func:`fit_centre_two_segments`.
 
-    Measured (seeded Monte-Carlo, 200 random Stoddart-like rigs with a
-    +/-50 deg hinge, sqrt(tr W_y) = 1.7 mm, N = 1200, weighted): direction
-    sd ~0.055 deg (sqrt(tr cov) 0.97 mrad, rms error 0.97 mrad, mean e/2
+    Measured (rigid attachment; seeded Monte-Carlo, 200 random
+    Stoddart-like rigs with a +/-50 deg hinge, sqrt(tr W_y) = 1.7 mm, N =
+    1200, weighted): direction sd ~0.055 deg (sqrt(tr cov) 0.97 mrad, rms error 0.97 mrad, mean e/2
     1.02); point sqrt(tr cov) 0.48 mm, rms error 0.47 mm, mean e/3 0.93.
     The closed form is ~5-10 % less precise.
 
