@@ -246,7 +246,7 @@ def test_real_fixtures_report(
     if joint == "right_knee":
         # Skin markers: the reported sd is the statistical part plus the soft-tissue-artefact part (issue 17).
         # The statistical part is the closed form's as before (< 2 deg: the verdict and the sign are judged on
-        # it); the total covers the 0.4 deg between jointfit and SARA on this trial (bench/results/peers.md) and
+        # it); the total covers the 0.1-0.4 deg between jointfit and SARA on this trial (bench/results/peers.md) and
         # the 1.8-2.1 deg between the two- and one-segment axes (test_real_fixtures.py; 2.1 for the closed form,
         # which the batch skin fit reports too, 1.8 for the refinement it reported before). The online hinge also
         # reads the artefact from the axis-alignment residual (the shank cluster turning about the shank,
