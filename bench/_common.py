@@ -46,3 +46,8 @@ def save_results(path: Path, text: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text, encoding="utf-8")
     return path
+
+
+def selected(label: str, cases: Sequence[str]) -> bool:
+    """Whether a case runs under a ``--cases`` filter: its label contains one of ``cases`` (none given: all)."""
+    return not cases or any(text in label for text in cases)

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from _common import selected
 from _paper_helpers import (
     angle_deg,
     distance_to_line,
@@ -152,9 +153,11 @@ def _trial(rng: np.random.Generator, case: Case) -> dict[str, float]:
     return out
 
 
-def run(trials: int, seed: int = SEED) -> list[tuple[Case, dict[str, list[float]]]]:
+def run(trials: int, seed: int = SEED, cases: Sequence[str] = ()) -> list[tuple[Case, dict[str, list[float]]]]:
     results = []
     for case, seq in zip(CASES, np.random.SeedSequence(seed).spawn(len(CASES)), strict=True):
+        if not selected(case.label, cases):
+            continue  # its seed is still spawned: a case's trials do not depend on the filter
         acc: dict[str, list[float]] = {}
         for trial_seq in seq.spawn(trials):
             try:
@@ -230,29 +233,39 @@ def tables(results: list[tuple[Case, dict[str, list[float]]]]) -> list[str]:
         for c, a in results
         if c.kind == "hinge"
     ]
+    parts: list[str] = []
+    if ball:  # (--cases may select one kind only)
+        parts += [
+            "## Hip (ball joint): centre in the pelvis frame, mm",
+            "",
+            markdown_table(
+                [
+                    "case", "error", "SCoRE", "sd (total)", "sd (statistical)", "e/3", "median e/3", "e/3 > 3",
+                    "noise read/true", "flagged", "refused",
+                ],
+                ball,
+                align="lrrrrrrrrrr",
+            ),
+            "",
+        ]
+    if hinge:
+        parts += [
+            "## Knee (hinge): direction (deg) and point (mm, distance of the true knee centre from the estimated "
+            "axis), thigh frame",
+            "",
+            markdown_table(
+                [
+                    "case", "direction error", "SARA", "sd (total)", "sd (statistical)", "e/2", "median e/2",
+                    "e/2 > 3", "point error", "SARA point", "point e/2", "median point e/2", "noise read/true",
+                    "flagged", "refused",
+                ],
+                hinge,
+                align="lrrrrrrrrrrrrrr",
+            ),
+            "",
+        ]
     return [
-        "## Hip (ball joint): centre in the pelvis frame, mm",
-        "",
-        markdown_table(
-            [
-                "case", "error", "SCoRE", "sd (total)", "sd (statistical)", "e/3", "median e/3", "e/3 > 3",
-                "noise read/true", "flagged", "refused",
-            ],
-            ball,
-            align="lrrrrrrrrrr",
-        ),
-        "",
-        "## Knee (hinge): direction (deg) and point (mm, distance of the true knee centre from the estimated axis), thigh frame",
-        "",
-        markdown_table(
-            [
-                "case", "direction error", "SARA", "sd (total)", "sd (statistical)", "e/2", "median e/2", "e/2 > 3",
-                "point error", "SARA point", "point e/2", "median point e/2", "noise read/true", "flagged", "refused",
-            ],
-            hinge,
-            align="lrrrrrrrrrrrrrr",
-        ),
-        "",
+        *parts,
         "sd: root mean square over the trials of sqrt(tr cov); (statistical): the part from white marker "
         "noise and the residuals, without the soft-tissue prior (`-` where the fit does not report it). "
         "point error, SARA point: the true centre's distance from each method's estimated axis line (until "
@@ -275,6 +288,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="8 trials per case instead of 30")
     parser.add_argument("--trials", type=int, default=None, help="trials per case (overrides --quick)")
     parser.add_argument("--out", default="sta.md", help="result file name in bench/results")
+    parser.add_argument(
+        "--cases", nargs="+", default=(), metavar="TEXT",
+        help="run only the cases whose label contains one of these texts (e.g. knee); default all",
+    )
     args_list = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(args_list)
     if biobuddy is None:
@@ -283,7 +300,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.getLogger("biobuddy").setLevel(logging.WARNING)
     trials = args.trials or (8 if args.quick else 30)
     t0 = time.perf_counter()
-    results = run(trials)
+    results = run(trials, cases=args.cases)
     parts = run_header(
         "Soft-tissue artefact: error and calibration against SCoRE / SARA",
         SCRIPT,

@@ -39,6 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _common import selected
 from _paper_helpers import (
     angle_deg,
     elapsed_line,
@@ -125,9 +126,11 @@ def _trial(rng: np.random.Generator, case: Case) -> list[dict[str, float]]:
     return rows
 
 
-def run(trials: int, seed: int = SEED) -> list[tuple[Case, list[dict[str, list[float]]]]]:
+def run(trials: int, seed: int = SEED, cases: Sequence[str] = ()) -> list[tuple[Case, list[dict[str, list[float]]]]]:
     results = []
     for case, seq in zip(CASES, np.random.SeedSequence(seed).spawn(len(CASES)), strict=True):
+        if not selected(case.label, cases):
+            continue  # its seed is still spawned: a case's trials do not depend on the filter
         acc: list[dict[str, list[float]]] = [{} for _ in RATES]
         for trial_seq in seq.spawn(trials):
             for a, row in zip(acc, _trial(np.random.default_rng(trial_seq), case), strict=True):
@@ -172,6 +175,8 @@ def tables(results: list[tuple[Case, list[dict[str, list[float]]]]]) -> list[str
                     fmt(_stat(a, "factor", "median")), fmt(_stat(a, "scale", "median")),
                     fmt(_stat(a, "flagged", "mean")), str(len(a.get("refused", []))),
                 ])
+        if not rows:
+            continue  # no case of this kind selected (--cases)
         parts += [
             f"## {title}",
             "",
@@ -197,11 +202,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="6 trials per case instead of 20")
     parser.add_argument("--trials", type=int, default=None, help="trials per case (overrides --quick)")
     parser.add_argument("--out", default="sta_online.md", help="result file name in bench/results")
+    parser.add_argument(
+        "--cases", nargs="+", default=(), metavar="TEXT",
+        help="run only the cases whose label contains one of these texts (e.g. knee); default all",
+    )
     args_list = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(args_list)
     trials = args.trials or (6 if args.quick else 20)
     t0 = time.perf_counter()
-    results = run(trials)
+    results = run(trials, cases=args.cases)
     parts = run_header(
         "Soft-tissue artefact, online: calibration across frame rates",
         SCRIPT,

@@ -265,6 +265,16 @@ def _inv_scaled(A: FloatArray) -> FloatArray:
     return 0.5 * (out + out.T)
 
 
+def _white_sandwich(A_inv: FloatArray, J: FloatArray, W: FloatArray) -> FloatArray:
+    """White-noise covariance ``A^-1 (sum J_t^T W_t J_t) A^-1`` (m, m) of an unweighted estimate.
+
+    ``A_inv`` (m, m), ``J`` (N, k, m) the residuals' Jacobian, ``W`` (N, k, k) their white-noise covariance.
+    """
+    meat = np.einsum("nim,nij,njp->mp", J, W, J)
+    out: FloatArray = A_inv @ meat @ A_inv
+    return 0.5 * (out + out.T)
+
+
 def _moment_scale(u: FloatArray, B: FloatArray) -> tuple[float, float]:
     """Variance ``s^2`` for ``u ~ N(0, s^2 B B^T + I)`` and its effective degrees of freedom.
 
@@ -296,8 +306,10 @@ def artefact_covariance(
     features: FloatArray,
     templates: tuple[FloatArray, FloatArray],
     weights: tuple[float, float],
+    *,
+    weighted: bool = True,
 ) -> ArtefactCovariance:
-    """Statistical and soft-tissue covariance of a two-segment estimate (Gauss-Markov, linearised).
+    """Statistical and soft-tissue covariance of a two-segment estimate (Gauss-Markov or least squares, linearised).
 
     Parameters
     ----------
@@ -320,6 +332,12 @@ def artefact_covariance(
     weights : (float, float)
         Relative size of the two clusters' artefact (0 for a rigid segment):
         :func:`deformation_weights`. The prior's overall scale is estimated.
+    weighted : bool
+        ``True`` (default): the estimate solves the Gauss-Markov equations
+        ``sum_t J_t^T W_t^-1 r_t = 0``; ``False``: the unweighted ones ``sum_t
+        J_t^T r_t = 0`` (an estimate first-order equivalent to unweighted least
+        squares, e.g. the hinge closed form). The influence of a residual
+        change on the estimate, and so every covariance, follows the equations.
 
     Returns
     -------
@@ -345,6 +363,12 @@ def artefact_covariance(
     ``cov_statistical = A^-1 Omega A^-1`` (eq. A4), clipped below at
     ``A^-1 = (sum J^T W^-1 J)^-1`` (never more confident than white noise).
     Whitening is by the Cholesky factor ``W_t = L_t L_t^T``, ``z_t = L_t^-1 r_t``.
+
+    **Unweighted equations** (``weighted=False``): ``A = sum J^T J``, ``K_t =
+    A^-1 J_t^T D_t``, the scores ``J_t^T r_t`` (the remaining residual) and the floor
+    the white-noise sandwich ``A^-1 (sum J^T W J) A^-1``; the scale is read as
+    above (the residual's likelihood is the white noise's whatever the
+    estimator).
 
     **The scale's degrees of freedom (eq. A5).** ``s^2`` is read along
     ``nu = (sum lam^2)^2 / sum lam^4`` effective directions (:func:`_moment_scale`),
@@ -382,10 +406,13 @@ def artefact_covariance(
     Jw = np.linalg.solve(Lw, J)  # (n, k, m): L^-1 J, so that Jw^T Jw = J^T W^-1 J
     Dw = np.linalg.solve(Lw, D)  # (n, k, 12)
     z = np.linalg.solve(Lw, res[..., None])[..., 0]
-    A = np.einsum("nim,nip->mp", Jw, Jw)
+    # A and J_t^T V_t D_t (V = W^-1 or I) from plain products: through L^T J and L^-1 J the unweighted ones
+    # would lose digits to the conditioning of L (rows in different units)
+    Ju, Du = (Jw, Dw) if weighted else (J, D)
+    A = np.einsum("nim,nip->mp", Ju, Ju)
     A_inv = _inv_scaled(0.5 * (A + A.T))
     # K_t summed against the features: C (F, m, 12)
-    JtWD = np.swapaxes(Jw, 1, 2) @ Dw  # (n, m, 12)
+    JtWD = np.swapaxes(Ju, 1, 2) @ Du  # (n, m, 12)
     C = np.einsum("mp,npj,nf->fmj", A_inv, JtWD, features)
     var = np.concatenate([_prior_variances(templates[0]), _prior_variances(templates[1])])
     var = var * np.repeat(np.asarray(weights, dtype=np.float64), 6)
@@ -412,10 +439,10 @@ def artefact_covariance(
     zr = z_rem.reshape(n, k)
     tau, window = _integrated_time(zr)
     bandwidth = int(min(max(2 * window, 1), n // 4 if n >= 8 else 1))
-    scores = np.einsum("nim,ni->nm", Jw, zr)
+    scores = np.einsum("nim,ni->nm", Jw, zr) if weighted else np.einsum("nim,ni->nm", J, (Lw @ zr[..., None])[..., 0])
     omega = _hac(scores, bandwidth)
     hac = A_inv @ omega @ A_inv
-    statistical = _floor(0.5 * (hac + hac.T), A_inv)
+    statistical = _floor(0.5 * (hac + hac.T), A_inv if weighted else _white_sandwich(A_inv, J, W))
     return ArtefactCovariance(
         statistical=statistical,
         artefact=0.5 * (artefact + artefact.T),

@@ -147,9 +147,10 @@ def axis_from_pose_sums(
     -----
     The direction is the top singular pair of ``S = sum Q_t`` and the point
     pair the pseudo-inverse solution of the ball-joint normal equations in
-    the complement of ``(n_p, n_c)``, as in the closed form that starts
-    :func:`~jointfit_core.segments.fit_axis_two_segments` (which then refines
-    over the frames; this does not, so it is a little less precise).
+    the complement of ``(n_p, n_c)``, as in the closed form that
+    :func:`~jointfit_core.segments.fit_axis_two_segments` reports for skin
+    markers (for rigid markers it then refines over the frames, a little
+    more precise; this does not).
     Covariances, first order in the pose noise: the direction pair from the
     perturbation of the singular vectors (see :func:`_direction_covariance`);
     the point pair from the sandwich of

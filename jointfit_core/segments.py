@@ -1372,6 +1372,52 @@ def _hinge_solve(
     return st, 0.5 * (cov + cov.T), bases
 
 
+def _hinge_closed_cov(
+    Q: FloatArray, t: FloatArray, st: _HingeState, Wp6: FloatArray, Wc6: FloatArray
+) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray]]:
+    """White-noise covariance (9, 9) of the hinge closed form, linearised at it, and the bases it refers to.
+
+    Parameters
+    ----------
+    Q, t : ndarray, shape (N, 3, 3) and (N, 3)
+        Relative poses of the used frames (input units).
+    st : _HingeState
+        The closed form: the top singular pair of ``sum Q_t`` and the axis-point pair.
+    Wp6, Wc6 : ndarray, shape (N, 6, 6)
+        Local pose-noise covariances ``(omega, u)`` of the two segments (rad^2, units^2).
+
+    Returns
+    -------
+    cov : ndarray, shape (9, 9)
+        ``A^-1 (sum J^T W J) A^-1``, ``A = sum J^T J``, over ``(eps_p, eps_c, eta)`` as in :func:`_hinge_psi`.
+    bases : (ndarray (3, 2), ndarray (3, 2), ndarray (6, 5))
+
+    Raises
+    ------
+    NotIdentifiableError
+        The normal matrix is singular (too little rotation).
+
+    Notes
+    -----
+    The closed form solves the unweighted hinge equations ``sum_t J_t^T r_t = 0`` to first order: its
+    point pair exactly (least squares on ``c_p - Q_t c_c - t_t`` in the complement of the gauge), its
+    direction pair up to a weight ``n_p^T Q_t n_c = 1 - O(error^2)`` per frame (the singular-vector
+    conditions ``B_p^T sum Q_t n_c = 0``, ``B_c^T sum Q_t^T n_p = 0``), so its first-order covariance is
+    the unweighted sandwich, evaluated here at the closed form itself.
+    """
+    bases = _hinge_bases(st)
+    _, J, W, psi = _hinge_psi(Q, t, st, bases, Wp6, Wc6, False)
+    Jt = np.swapaxes(J, -1, -2)
+    _, A_inv, ratio = _sym_solve((Jt @ J).sum(axis=0), psi.sum(axis=0))
+    if ratio <= SINGULAR_REL:
+        raise NotIdentifiableError(
+            "the hinge normal matrix is singular: the relative rotation does not vary enough to locate "
+            "the axis; flex the joint through a larger range"
+        )
+    cov = A_inv @ (Jt @ W @ J).sum(axis=0) @ A_inv
+    return 0.5 * (cov + cov.T), bases
+
+
 def _axis_reference(reference_direction: ArrayLike | None, n_p: FloatArray) -> FloatArray:
     if reference_direction is not None:
         return check_vector3(reference_direction, name="reference_direction", unit=True)
@@ -1403,9 +1449,10 @@ def fit_axis_two_segments(
         axis (x, y or z) along which the estimated direction has its largest
         component, i.e. that component is made positive.
     weighted : bool
-        ``True`` (default): Gauss-Markov with the per-frame noise of the
-        constraints; ``False``: the unweighted least-squares solution with a
-        sandwich covariance.
+        Rigid attachment only. ``True`` (default): Gauss-Markov with the
+        per-frame noise of the constraints; ``False``: the unweighted
+        least-squares solution with a sandwich covariance. Skin attachment
+        always reports the closed form (see ``attachment``).
     model_error : bool
         ``True`` (default): grow the covariances by the model error seen in
         the whitened hinge residuals (their size beyond the marker noise and
@@ -1413,11 +1460,16 @@ def fit_axis_two_segments(
         :func:`jointfit_core.model_error.residual_inflation`), so that skin
         motion does not leave them over-confident.
     attachment : {"skin", "rigid"} or (str, str)
-        As in :func:`fit_centre_two_segments`: ``"skin"`` (default) reads
-        the white noise from the residuals' second differences and, with
+        As in :func:`fit_centre_two_segments`: ``"skin"`` (default; either
+        segment on skin) reports the closed form (no refinement, no bias
+        compensation: the estimate :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`
+        and the online estimator give on the same frames), reads the white
+        noise from the residuals' second differences and, with
         ``model_error``, gives ``cov_statistical + cov_artefact`` over the 9
-        hinge parameters (:func:`jointfit_core.artefact.artefact_covariance`);
-        ``"rigid"`` the previous inflation.
+        hinge parameters, both linearised at the closed form
+        (:func:`jointfit_core.artefact.artefact_covariance` with
+        ``weighted=False``); ``"rigid"`` the Gauss-Markov refinement and the
+        previous inflation.
 
     Returns
     -------
@@ -1461,21 +1513,29 @@ def fit_axis_two_segments(
     [n_c]x Sigma_rot,c [n_c]x^T Q_t^T``) and the point part ``-[c_p]x
     omega_p + u_p + Q_t [c_c]x omega_c - Q_t u_c`` (the two parts are
     correlated through ``omega``, which the 5x5 covariance keeps).
-    ``weighted=True``: Gauss-Markov iterations (Stoddart appendix eq. 22-23)
-    from the closed form, covariance ``(sum J^T W^-1 J)^-1``;
-    ``weighted=False``: the closed form (refined to the stationary point of
-    the projected residual), covariance ``A^-1 (sum J^T W J) A^-1`` with
-    ``A = sum J^T J``. The direction covariances are rank 2 (orthogonal to
+    Rigid attachment, ``weighted=True``: Gauss-Markov iterations (Stoddart
+    appendix eq. 22-23) from the closed form, covariance ``(sum J^T W^-1
+    J)^-1``; ``weighted=False``: the closed form refined to the stationary
+    point of the projected residual, covariance ``A^-1 (sum J^T W J) A^-1``
+    with ``A = sum J^T J``. Skin attachment: the closed form itself, with
+    that sandwich evaluated at it (the closed form solves the unweighted
+    equations to first order: exactly for the point pair, up to a per-frame
+    weight ``n_p^T Q_t n_c = 1 - O(misalignment^2)`` for the directions).
+    Under soft-tissue artefact the refinement is less accurate than the
+    closed form it starts from (its weights come from the white pose noise,
+    while the misfit is mostly artefact, which they do not describe):
+    measured on the knee of ``bench/sta.py``, ``bench/results/sta_knee_before.md``
+    against ``sta_knee_after.md``. The direction covariances are rank 2 (orthogonal to
     the direction). The point covariances are propagated through
     ``point = c - n (n . c)`` and include the along-axis shift caused by the
     direction's uncertainty. All covariances scale with the marker noise
-    variance and as ``1 / N`` for a fixed flexion range. The second-order
-    bias from the noisy poses is removed as in
+    variance and as ``1 / N`` for a fixed flexion range. Rigid attachment:
+    the second-order bias from the noisy poses is removed as in
     :func:`fit_centre_two_segments`.
 
-    Measured (seeded Monte-Carlo, 200 random Stoddart-like rigs with a
-    +/-50 deg hinge, sqrt(tr W_y) = 1.7 mm, N = 1200, weighted): direction
-    sd ~0.055 deg (sqrt(tr cov) 0.97 mrad, rms error 0.97 mrad, mean e/2
+    Measured (rigid attachment; seeded Monte-Carlo, 200 random
+    Stoddart-like rigs with a +/-50 deg hinge, sqrt(tr W_y) = 1.7 mm, N =
+    1200, weighted): direction sd ~0.055 deg (sqrt(tr cov) 0.97 mrad, rms error 0.97 mrad, mean e/2
     1.02); point sqrt(tr cov) 0.48 mm, rms error 0.47 mm, mean e/3 0.93.
     The closed form is ~5-10 % less precise.
 
@@ -1517,10 +1577,13 @@ def fit_axis_two_segments(
     vis_p, vis_c = prep.poses_parent.visible[used], prep.poses_child.visible[used]
     Wp6 = pose_covariance_local(prep.template_parent, prep.sigma_parent, vis_p)
     Wc6 = pose_covariance_local(prep.template_child, prep.sigma_child, vis_c)
-    noise_p = pose_noise_local(prep.template_parent, prep.sigma_parent, vis_p)
-    noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
-    use_weights = weighted and prep.noisy
-    st, cov, (Bp, Bc, Z) = _hinge_solve(Q, t, st, noise_p, noise_c, Wp6, Wc6, use_weights)
+    if skin:  # the closed form itself: under soft-tissue artefact the refinement moves it away from the truth
+        cov, (Bp, Bc, Z) = _hinge_closed_cov(Q, t, st, Wp6, Wc6)
+    else:
+        noise_p = pose_noise_local(prep.template_parent, prep.sigma_parent, vis_p)
+        noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
+        use_weights = weighted and prep.noisy
+        st, cov, (Bp, Bc, Z) = _hinge_solve(Q, t, st, noise_p, noise_c, Wp6, Wc6, use_weights)
     stat: FloatArray | None = None
     scale = (0.0, 0.0)
     if model_error and prep.noisy and skin:
@@ -1528,7 +1591,7 @@ def fit_axis_two_segments(
         D = np.concatenate(_hinge_noise_jacobian(Q, st, Bp), axis=-1)
         weights = deformation_weights(prep.pooled, (prep.sigma_parent, prep.sigma_child), att)
         parts = artefact_covariance(
-            res, J, D, W, joint_features(Q), (prep.template_parent, prep.template_child), weights
+            res, J, D, W, joint_features(Q), (prep.template_parent, prep.template_child), weights, weighted=False
         )
         cov, stat, scale = parts.total, parts.statistical, (float(parts.scale[0]), float(parts.scale[1]))
     elif model_error and prep.noisy:

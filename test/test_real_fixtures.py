@@ -86,8 +86,10 @@ def test_hip_skin_sd_covers_the_published_methods() -> None:
 
 def test_knee_skin_sd_covers_the_difference_between_methods() -> None:
     """Issue 17: the two-segment axis and the one-segment axis (shank markers in the thigh frame,
-    Gamage-Lasenby) differ by ~1.8 deg on this trial; the skin direction covariance covers it
-    (e/2 < 2 in the plane normal to the axis), without an sd so wide it says nothing (< 5 deg)."""
+    Gamage-Lasenby) differ by ~2.1 deg on this trial (the closed form skin hinges report; 1.8 for the
+    refinement they reported before); the skin direction covariance covers it (e/2 < 2 in the plane normal
+    to the axis: 1.5, was 0.7 with the refinement's wider artefact part), without an sd so wide it says
+    nothing (< 5 deg)."""
     data = read_c3d(DATA / "biobuddy" / "right_knee.c3d")
     thigh, shank = data.select(["RTHI1", "RTHI2", "RTHI3"]), data.select(["RLEG1", "RLEG2", "RLEG3"])
     fit = fit_axis_two_segments(thigh, shank)
