@@ -271,8 +271,10 @@ class OnlineJoint:
     :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` (hinge) on the
     window's sums, with the mean local pose covariances times the current
     noise variances: identical to those functions on the window's frames.
-    The weighted (Gauss-Markov) batch fit is about 25 % more precise but
-    needs every frame.
+    On rigid markers the weighted (Gauss-Markov) batch fit is about 25 % more
+    precise but needs every frame; on skin markers a batch hinge reports the
+    same closed form as this (the refinement is less accurate under soft-tissue
+    artefact, :func:`~jointfit_core.segments.fit_axis_two_segments`).
 
     **Serial correlation** (``serial_correlation=True``). Those covariances
     treat the frames as independent. Soft-tissue artefact moves markers
