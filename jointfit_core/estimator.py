@@ -40,7 +40,6 @@ from .segment_pair import GateVerdict, PairSet, SegmentPair, poses, poses_many, 
 from .segment_tracker import (
     COS_MAX_TURN,
     GATE_TURN_GAP_FRAMES,
-    SegmentTracker,
     cos_turn,
     shape_ok,
 )
@@ -417,8 +416,6 @@ class OnlineJoint:
     def reset(self) -> None:
         """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
         self.n_markers: tuple[int, int] | None = self._n_markers_arg
-        self._parent: SegmentTracker | None = None
-        self._child: SegmentTracker | None = None
         self._stats = RelativePoseSums(self.spec, self._skin, self._moments)
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
         self._solution: PoseSumsCentre | PoseSumsAxis | None = None
@@ -457,11 +454,11 @@ class OnlineJoint:
         if tp is not None or tc is not None:
             assert self.n_markers is not None
             self._make_segments(*self.n_markers)
-            assert self._parent is not None and self._child is not None
+            assert self._pose is not None
             if tp is not None:
-                self._parent.set_template(tp)
+                self._pose.parent.set_template(tp)
             if tc is not None:
-                self._child.set_template(tc)
+                self._pose.child.set_template(tc)
 
     @property
     def frozen(self) -> bool:
@@ -471,16 +468,14 @@ class OnlineJoint:
     @property
     def templates_ready(self) -> bool:
         """Whether both templates are established."""
-        return self._parent is not None and self._parent.template is not None and self._child is not None and (
-            self._child.template is not None
-        )
+        return self._pose is not None and self._pose.parent.template is not None and self._pose.child.template is not None
 
     @property
     def templates(self) -> tuple[FloatArray | None, FloatArray | None]:
         """The parent and child templates (local frames, input units), None until established."""
         return (
-            None if self._parent is None else self._parent.template,
-            None if self._child is None else self._child.template,
+            None if self._pose is None else self._pose.parent.template,
+            None if self._pose is None else self._pose.child.template,
         )
 
     @property
@@ -498,15 +493,15 @@ class OnlineJoint:
         """The larger rms radius of the two templates (input units; 0 until they exist)."""
         if not self.templates_ready:
             return 0.0
-        assert self._parent is not None and self._child is not None
-        return max(self._parent.rms_radius, self._child.rms_radius)
+        assert self._pose is not None
+        return max(self._pose.parent.rms_radius, self._pose.child.rms_radius)
 
     @property
     def gated_frames(self) -> tuple[int, int]:
         """Frames in which the parent and the child failed the outlier gate (held out whole or in part)."""
         return (
-            0 if self._parent is None else self._parent.gated_frames,
-            0 if self._child is None else self._child.gated_frames,
+            0 if self._pose is None else self._pose.parent.gated_frames,
+            0 if self._pose is None else self._pose.child.gated_frames,
         )
 
     @property
@@ -521,12 +516,12 @@ class OnlineJoint:
 
     def status(self) -> str:
         """What the estimator is waiting for, in words (empty when estimating)."""
-        if self._parent is None or self._child is None:
+        if self._pose is None:
             return "waiting for the first frame"
         if not self.templates_ready:
             return (
-                f"building templates from fully visible frames: parent {self._parent.template_progress}/"
-                f"{self.template_frames}, child {self._child.template_progress}/{self.template_frames}"
+                f"building templates from fully visible frames: parent {self._pose.parent.template_progress}/"
+                f"{self.template_frames}, child {self._pose.child.template_progress}/{self.template_frames}"
             )
         return ""
 
@@ -539,8 +534,6 @@ class OnlineJoint:
     def _make_segments(self, n_parent: int, n_child: int) -> None:
         self.n_markers = (n_parent, n_child)
         self._pose = SegmentPair(n_parent, n_child, self.template_frames)
-        # (the pair's trackers, read in many places without the indirection)
-        self._parent, self._child = self._pose.parent, self._pose.child
 
     def _drop(self, reason: str) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
@@ -589,7 +582,7 @@ class OnlineJoint:
         ok, st = self._accept_stamp(stamp)
         if not ok:
             return None
-        if self._parent is None or self._child is None:
+        if self._pose is None:
             if yp.shape[0] < MIN_POSE_MARKERS or yc.shape[0] < MIN_POSE_MARKERS:
                 raise InputError(
                     f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got "
@@ -597,12 +590,12 @@ class OnlineJoint:
                 )
             self._make_segments(yp.shape[0], yc.shape[0])
         pose = self._pose
-        assert pose is not None and self._parent is not None and self._child is not None
+        assert pose is not None
         self.n_frames_seen += 1
 
         if not self.templates_ready:
-            self._parent.add_template_frame(yp)
-            self._child.add_template_frame(yc)
+            pose.parent.add_template_frame(yp)
+            pose.child.add_template_frame(yc)
             self._pending.append((yp.copy(), yc.copy(), st, number))
             if len(self._pending) > 20 * self.template_frames:
                 self._pending.pop(0)
@@ -729,8 +722,7 @@ class OnlineJoint:
     def _update_block(self, yp: FloatArray, yc: FloatArray, st: FloatArray | None) -> None:
         """:meth:`update_many` once the templates are fixed (checked frames)."""
         pose = self._pose
-        assert pose is not None
-        assert self._parent is not None and self._child is not None and self.n_markers is not None
+        assert pose is not None and self.n_markers is not None
         numbers = self._arrivals + 1 + np.arange(yp.shape[0], dtype=np.int64)
         self._arrivals += yp.shape[0]
         if st is not None:
@@ -845,7 +837,6 @@ class OnlineJoint:
         seg_rows = [at[side == k] for k in range(2)]
         shapes: list[BlockJumps] = []  # per segment, the jumps of the rows that pose it
         if rows.size:
-            assert self._parent is not None and self._child is not None
             fields = pose.table()
             seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
             Y_seg = Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side]
@@ -858,7 +849,7 @@ class OnlineJoint:
             residual_bad = (sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)
             local = np.einsum("kpi,kij->kpj", Y_seg - ds[:, None, :], Rs)  # R^T (y - d) of every marker
             vis = fields[1].reshape(-1, Y.shape[2])[seg] > 0.0
-            for k, segment in enumerate((self._parent, self._child)):
+            for k, segment in enumerate((pose.parent, pose.child)):
                 sel, p = side == k, segment.n_markers
                 bj = BlockJumps(
                     segment.shape, local[sel, :p], vis[sel, :p], numbers[rows[seg_rows[k]]], residual_bad[sel],
@@ -1013,12 +1004,12 @@ class OnlineJoint:
             if self.gate <= 0.0 or min(sigma) <= 0.0:
                 self._gate_cache = None
             else:
-                assert self._parent is not None and self._child is not None
+                assert self._pose is not None
                 # noise-free data: sigmas of rounding would gate every frame
                 floor = GATE_SIGMA_FLOOR * self.length_scale
                 s = np.maximum(sigma, floor)
                 self._gate_cache = np.square(self.gate * s)
-                for seg, sk, var in ((self._parent, s[0], self._gate_cache[0]), (self._child, s[1], self._gate_cache[1])):
+                for seg, sk, var in ((self._pose.parent, s[0], self._gate_cache[0]), (self._pose.child, s[1], self._gate_cache[1])):
                     seg.set_limits(float(var), seg.shape.normal_jump(float(sk), floor), self.gate)
         return self._gate_cache
 
@@ -1031,11 +1022,11 @@ class OnlineJoint:
         latest estimate's noise (a calibration loaded), else the noise seen while building the
         templates. A fixed ``noise_std`` is used as given.
         """
-        assert self._parent is not None and self._child is not None
+        assert self._pose is not None
         if self._solution is not None:
             sigma = np.array(self._sigma, dtype=np.float64)
         else:
-            sigma = np.array([self._parent.template_sigma, self._child.template_sigma])
+            sigma = np.array([self._pose.parent.template_sigma, self._pose.child.template_sigma])
         noise = self._stats.noise_sums()
         if noise is not None:
             ss, dof = noise
@@ -1085,7 +1076,6 @@ class OnlineJoint:
         """
         pose = self._pose
         assert pose is not None
-        assert self._parent is not None and self._child is not None
         ps = pose.pair(missing)
         if ps.parent is None and not counted[0]:
             self._drop("parent_not_posed")
@@ -1303,8 +1293,8 @@ class OnlineJoint:
     def _radii(self) -> tuple[float, float]:
         if not self.templates_ready:
             return (0.0, 0.0)
-        assert self._parent is not None and self._child is not None
-        return (self._parent.rms_radius, self._child.rms_radius)
+        assert self._pose is not None
+        return (self._pose.parent.rms_radius, self._pose.child.rms_radius)
 
     def is_current(self, request: SolveRequest) -> bool:
         """Whether a :meth:`solve_request` was made in the state the estimator is in now.
@@ -1467,9 +1457,9 @@ class OnlineJoint:
                     f"calibration: templates of shapes {tp.shape} and {tc.shape} do not match n_markers {est.n_markers}"
                 )
             est._make_segments(*est.n_markers)
-            assert est._parent is not None and est._child is not None
-            est._parent.set_template(tp)
-            est._child.set_template(tc)
+            assert est._pose is not None
+            est._pose.parent.set_template(tp)
+            est._pose.child.set_template(tc)
             tf = data.get("templates_fixed", [False, False])
             est._templates_arg = (tp if tf[0] else None, tc if tf[1] else None)
             fit = data["estimate"]

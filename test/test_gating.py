@@ -333,8 +333,8 @@ def test_block_path_while_frozen_gates_as_the_frame_path() -> None:
     for lo in range(600, 1500, 128):
         many.update_many(parent[lo : lo + 128], child[lo : lo + 128], stamps[lo : lo + 128])
     assert one.dropped == many.dropped and one.dropped.get("child_gated", 0) >= 12 * 14
-    for a, b in ((one._parent, many._parent), (one._child, many._child)):  # the segments' turn references
-        assert a is not None and b is not None
+    assert one._pose is not None and many._pose is not None
+    for a, b in ((one._pose.parent, many._pose.parent), (one._pose.child, many._pose.child)):  # the turn references
         assert a.ref_frame == b.ref_frame and a.held == b.held
         np.testing.assert_allclose(b.ref_R, a.ref_R, rtol=0, atol=1e-9)
     assert one.n_window == many.n_window == before
