@@ -1,8 +1,11 @@
 """Two subjects on one ROS graph: two fake mocaps, two nodes in two namespaces, each a process of its own.
 
 Subject A is the fake mocap with seed 1 in ``/subject_a``, subject B seed 2 in
-``/subject_b`` (their joints are 5-40 cm apart in the world, so an estimate
-near one subject's truth is far from the other's); each node runs with
+``/subject_b``. Their hips wander through overlapping parts of the world and
+can pass within 4 mm of each other at an instant, but over any 4 s the median
+distance between them is at least 9 cm (whatever the offset between the two
+streams' start times, checked over 0-15 s offsets): an estimate that tracks one
+subject's truth stays far from the other's in the median. Each node runs with
 ``config/two_subjects/subject_<x>.yaml`` in its subject's namespace. The test
 process is the subscriber: it pairs each node's per-frame outputs with its
 own fake mocap's truth by stamp, then freezes A through ``jointfit call
@@ -180,7 +183,8 @@ def test_two_subjects_in_two_namespaces(listener: _Listener, tmp_path: Path) -> 
             assert np.median(_angle_deg(axis[-100:], true_axis[-100:])) < 3.0, ns
             other = "subject_b" if ns == "subject_a" else "subject_a"
             est_o, truth_o = listener.pairs(ns, "hip", truth_of=other)
-            assert len(est_o) >= 100 and np.min(np.linalg.norm(est_o - truth_o, axis=1)) > 0.03, (ns, len(est_o))
+            # the median, not the minimum: the two hips may pass within mm of each other at an instant
+            assert len(est_o) >= 100 and np.median(np.linalg.norm(est_o - truth_o, axis=1)) > 0.03, (ns, len(est_o))
             st = listener.status(f"/{ns}/jointfit", "hip")
             assert st["name"] == f"{ns}/jointfit: hip" and st["frozen"] == "False", st
             rom = [v for k, v in st.items() if k.startswith("range of motion (deg, last ")]  # live_geometry
