@@ -14,7 +14,6 @@ residual (:mod:`jointfit_core.serial`).
 
 from __future__ import annotations
 
-import heapq
 import itertools
 import math
 from dataclasses import asdict
@@ -23,11 +22,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from . import joint_blocks
 from .artefact import check_attachment
 from .calibration import fit_from_dict, fit_to_dict
-from .checks import as_real_array, check_frame, check_vector3
+from .checks import check_frame, check_vector3
 from .errors import InputError
-from .gate import BlockJumps
 from .hinge_from_sums import PoseSumsAxis
 from .joint_gate import JointTrack
 from .joint_sums import (
@@ -36,19 +35,13 @@ from .joint_sums import (
 )
 from .joint_world import JointOutput, WorldOutput
 from .pose import MIN_POSE_MARKERS
-from .segment_pair import GateVerdict, PairSet, SegmentPair, poses, poses_many, relative_poses
-from .segment_tracker import (
-    COS_MAX_TURN,
-    GATE_TURN_GAP_FRAMES,
-    cos_turn,
-    shape_ok,
-)
+from .segment_pair import GateVerdict, PairSet, SegmentPair, poses
+from .segment_tracker import GATE_REFRESH_FRAMES, shape_ok
 from .segments import (
     PoseSums,
     PoseSumsCentre,
 )
 from .serial import (
-    NOMINAL_RATE_HZ,
     LagSums,
     SerialInflation,
     TimeLagSums,
@@ -80,25 +73,10 @@ FloatArray = NDArray[np.float64]
 #: (noise-free or rounding-level data would otherwise fail it in every frame).
 GATE_SIGMA_FLOOR = 1e-6
 
-#: Outlier gate: its limits (residual level and normal jump of each segment) are read again every this
-#: many frames, and with every estimate: a skin cluster's deformation grows and shrinks with the joint
-#: angles, and without estimates (a whole recording in one block, the node's first seconds) limits
-#: frozen at the template frames' noise would hold a deforming cluster's markers out for good.
-GATE_REFRESH_FRAMES = 50
-
 #: ``format`` and ``version`` keys of a saved calibration (:meth:`OnlineJoint.to_dict`).
 CALIBRATION_FORMAT = "jointfit-calibration"
 CALIBRATION_VERSION = 1
 _KINDS = ("ball", "hinge")
-
-# --------------------------------------------------------------------------- batched gate margins
-
-
-#: Batched turn tests flag a frame as a candidate this much above the threshold: the batched poses
-#: (:func:`~jointfit_core.segment_pair.poses_many`) and the cosine differ from the per-frame ones by rounding.
-_COS_MARGIN = 1e-9
-#: Batched residual tests flag a frame as a candidate this fraction below the gate (rounding).
-_SS_MARGIN = 1e-6
 
 
 def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple[FloatArray, float]:
@@ -235,7 +213,7 @@ class OnlineJoint:
         its normal jump (:mod:`jointfit_core.gate`; or that fails the
         residual test, rms residual above ``gate`` times the segment's pooled
         pose-fit residual over the window, while moving more than usual; both
-        limits read again every :data:`GATE_REFRESH_FRAMES` frames and with
+        limits read again every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames and with
         each estimate, :meth:`_gate_sigma`) loses its worst-fitting marker and is
         fitted again, down to 3 markers; if it still fails, the segment is
         not posed in that frame. Swapped labels, ghost markers and jumps are
@@ -613,7 +591,10 @@ class OnlineJoint:
         For offline fits of whole recordings, where the per-frame world
         outputs are not needed: once the templates are fixed, the frames of
         the block are posed, turned into contributions and added to the
-        window in a few vectorised steps instead of one Python call each.
+        window in a few vectorised steps instead of one Python call each
+        (:func:`jointfit_core.joint_blocks.update_many`, whose Notes say how
+        and in what it equals :meth:`update`: counters, stamps, templates and
+        window frames the same, the sums to rounding).
 
         Parameters
         ----------
@@ -632,330 +613,8 @@ class OnlineJoint:
             block is checked first, so nothing is added when it raises
             (:meth:`update` would have added the frames before the bad one;
             call it frame by frame where that matters).
-
-        Notes
-        -----
-        Equivalence with :meth:`update` of each frame: the templates,
-        :attr:`dropped`, :attr:`n_frames_seen`, the window's stamps and
-        frames, and the lag-pair state end up the same; the sums equal to
-        rounding (~1e-13 relative: the poses come from a vectorised
-        eigen-solve, see :func:`~jointfit_core.segment_pair.poses_many`).
-
-        * Frames while the templates are being built (and the replay of the
-          frames kept meanwhile) go through :meth:`update` itself.
-        * Stamps: frame k is accepted when its stamp exceeds the running
-          maximum of the earlier stamps (the last accepted stamp is that
-          maximum, since a dropped stamp never exceeds it).
-        * Visibility: frames are grouped by their missing-marker pattern;
-          each pattern's cached pair set (the same cache as :meth:`update`)
-          says whether each segment can be posed (drops counted per frame).
-        * Poses (:func:`~jointfit_core.segment_pair.poses_many`) and contributions are computed for the
-          frames that enter the statistics with the per-frame operations on
-          stacked arrays. The outlier gate's candidates (a superset of the
-          frames it fails) go through :meth:`_add` one by one. A frame
-          carries its lag pair when the accepted frame before it (the
-          previous block's last one for the first) entered the statistics.
-        * The window takes the block with
-          :meth:`~jointfit_core.stats.SlidingSums.push_many`: the same frames
-          leave the window as when pushed one by one.
-
-        While frozen, frames are counted and dropped as :meth:`update` does
-        and nothing enters the statistics.
         """
-        try:
-            self._update_many(parent, child, stamps)
-        finally:
-            self.frame_poses = None  # a block gives no frame's poses
-
-    def _update_many(self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None) -> None:
-        yp, yc, st = self._check_block(parent, child, stamps)
-        n = yp.shape[0]
-        k = 0
-        while k < n and not self.templates_ready:
-            self.update(yp[k], yc[k], None if st is None else float(st[k]))
-            k += 1
-        # the gate's limits are refreshed every GATE_REFRESH_FRAMES frames (see _gate_var): blocks are cut there
-        # so that each part is judged with the limits its frames one by one would meet
-        cuts = [k]
-        if self.gate > 0.0:
-            first = self._arrivals + 1  # the number of frame k
-            cuts += range(k + ((-first) % GATE_REFRESH_FRAMES or GATE_REFRESH_FRAMES), n, GATE_REFRESH_FRAMES)
-        cuts.append(n)
-        for lo, hi in itertools.pairwise(cuts):
-            if lo < hi:
-                self._update_block(yp[lo:hi], yc[lo:hi], None if st is None else st[lo:hi])
-
-    def _check_block(
-        self, parent: ArrayLike, child: ArrayLike, stamps: ArrayLike | None
-    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
-        """The checks :meth:`update` makes per frame, on a whole block (float64 arrays, stamps or None)."""
-        blocks = []
-        for name, value, k in (("parent", parent, 0), ("child", child, 1)):
-            arr = as_real_array(value, name=name, expected="shape (N, P, 3)")
-            if arr.ndim != 3 or arr.shape[2] != 3:
-                raise InputError(f"{name}: expected shape (N, P, 3), got shape {arr.shape}")
-            if self.n_markers is not None and arr.shape[1] != self.n_markers[k]:
-                raise InputError(f"{name}: expected {self.n_markers[k]} markers, got {arr.shape[1]}")
-            if np.isinf(arr).any():
-                raise InputError(f"{name}: contains inf; use NaN for missing markers")
-            blocks.append(arr)
-        yp, yc = blocks
-        n = yp.shape[0]
-        if yc.shape[0] != n:
-            raise InputError(f"parent, child: expected the same number of frames, got {n} and {yc.shape[0]}")
-        if n and self.n_markers is None and min(yp.shape[1], yc.shape[1]) < MIN_POSE_MARKERS:
-            raise InputError(
-                f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got "
-                f"{yp.shape[1]} and {yc.shape[1]}"
-            )
-        st: FloatArray | None = None
-        if stamps is not None:
-            st = as_real_array(stamps, name="stamps", expected=f"shape ({n},)")
-            if st.shape != (n,):
-                raise InputError(f"stamps: expected shape ({n},), got shape {st.shape}")
-            if not np.isfinite(st).all():
-                raise InputError("stamp: expected finite numbers of seconds, got a non-finite stamp")
-        elif n and self.spec.needs_stamps:
-            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
-        return yp, yc, st
-
-    def _update_block(self, yp: FloatArray, yc: FloatArray, st: FloatArray | None) -> None:
-        """:meth:`update_many` once the templates are fixed (checked frames)."""
-        pose = self._pose
-        assert pose is not None and self.n_markers is not None
-        numbers = self._arrivals + 1 + np.arange(yp.shape[0], dtype=np.int64)
-        self._arrivals += yp.shape[0]
-        if st is not None:
-            before = np.empty_like(st)
-            before[0] = -np.inf if self._last_stamp is None else self._last_stamp
-            np.maximum.accumulate(st[:-1], out=before[1:])
-            np.maximum(before[1:], before[0], out=before[1:])
-            accepted = st > before
-            n_late = int(st.size - np.count_nonzero(accepted))
-            if n_late:
-                self.dropped["stamp_not_increasing"] = self.dropped.get("stamp_not_increasing", 0) + n_late
-                yp, yc, st, numbers = yp[accepted], yc[accepted], st[accepted], numbers[accepted]
-            if st.size:
-                self._last_stamp = float(st[-1])
-        m = yp.shape[0]
-        if m == 0:
-            return
-        self.n_frames_seen += m
-        pa, pc = self.n_markers
-        p_max = max(pa, pc)
-        Y = np.zeros((m, 2, p_max, 3))
-        Y[:, 0, :pa] = yp
-        Y[:, 1, :pc] = yc
-        # (m, 2, Pmax): a marker with any non-finite coordinate; padding rows are zeros: present
-        missing = ~(np.isfinite(Y[..., 0]) & np.isfinite(Y[..., 1]) & np.isfinite(Y[..., 2]))
-        Y[missing] = 0.0
-        flat = missing.reshape(m, 2 * p_max)
-        if 2 * p_max <= 63:
-            codes = flat @ (np.int64(1) << np.arange(2 * p_max, dtype=np.int64))
-            _, first, inverse = np.unique(codes, return_index=True, return_inverse=True)
-        else:
-            _, first, inverse = np.unique(flat, axis=0, return_index=True, return_inverse=True)
-        inverse = inverse.reshape(m)
-        sets = [pose.pair(missing[i]) for i in first]
-        parent_ok = np.array([ps.parent is not None for ps in sets])[inverse]
-        child_ok = np.array([ps.child is not None for ps in sets])[inverse]
-        slots = np.array([ps.slot for ps in sets])[inverse]  # each frame's pair set, as its row in SegmentPair.table
-        for reason, ok in (("parent_not_posed", parent_ok), ("child_not_posed", child_ok)):
-            bad = int(m - np.count_nonzero(ok))
-            if bad:
-                self.dropped[reason] = self.dropped.get(reason, 0) + bad
-        gate_var = self._gate_var()
-        if gate_var is not None:
-            self._gated_block(Y, missing, slots, parent_ok, child_ok, st, gate_var, numbers)
-            return
-        entered = parent_ok & child_ok
-        if self._frozen:
-            entered[:] = False
-        rows = np.flatnonzero(entered)
-        if rows.size:
-            # a lag pair when the accepted frame before entered the statistics
-            before_in = np.empty(m, dtype=bool)
-            before_in[0] = self._stats.chained
-            before_in[1:] = entered[:-1]
-            self._push_block(Y[rows], slots[rows], before_in[rows], st, rows, numbers)
-        self._stats.chained = bool(entered[-1])
-
-    def _gated_block(
-        self,
-        Y: FloatArray,
-        missing: NDArray[np.bool_],
-        slots: NDArray[np.intp],
-        parent_ok: NDArray[np.bool_],
-        child_ok: NDArray[np.bool_],
-        st: FloatArray | None,
-        gate_var: FloatArray,
-        numbers: NDArray[np.int64],
-    ) -> None:
-        """:meth:`_update_block` with the outlier gate: runs of passing frames in bulk, the others one by one.
-
-        Every frame that :meth:`update` might gate goes through :meth:`_add`
-        (marker removal, refit, turn-test references), exactly as
-        :meth:`update` would take it, between the bulk pushes of the frames
-        before and after it. The candidates are a superset of the frames the
-        gate fails, which is safe: a frame that passes enters the sums the
-        same way (to rounding) either way.
-
-        * Frames with one segment posed pass the gate in bulk too: they enter
-          no sums, and a pass only moves that segment's turn reference (set
-          after each run: per segment, its pose in the run's last frame that
-          posed it). While frozen, every frame with a segment posed goes one
-          by one.
-        * Residual: the comparison of :meth:`_add`, per posed segment, with a
-          small margin: the batched poses equal the per-frame ones to
-          rounding only.
-        * Turn (:data:`GATE_MAX_TURN_DEG`): per segment, against its pose in
-          the previous frame that posed it, assuming that frame passed; with
-          a small margin. After each frame taken one by one, each segment's
-          next frame that poses it is tested again against the references as
-          they then are.
-        """
-        pose = self._pose
-        assert pose is not None
-        m = Y.shape[0]
-        entered = parent_ok & child_ok
-        if self._frozen:
-            posed_ok = np.zeros((0, 2), dtype=bool)
-            rows = np.zeros(0, dtype=np.intp)
-            sequential = parent_ok | child_ok
-            entered = np.zeros(m, dtype=bool)
-        else:
-            rows = np.flatnonzero(parent_ok | child_ok)
-            posed_ok = np.stack([parent_ok[rows], child_ok[rows]], axis=1)  # (K, 2)
-            sequential = np.zeros(m, dtype=bool)
-        R = np.zeros((rows.size, 2, 3, 3))
-        d = np.zeros((rows.size, 2, 3))
-        ss = np.zeros((rows.size, 2))
-        # the posed segments, row after row: positions in ``rows`` and sides (0 parent, 1 child)
-        posed = np.flatnonzero(posed_ok.ravel())
-        at, side = np.divmod(posed, 2)
-        # per segment: rows (positions in ``rows``) that pose it, oldest first
-        seg_rows = [at[side == k] for k in range(2)]
-        shapes: list[BlockJumps] = []  # per segment, the jumps of the rows that pose it
-        if rows.size:
-            fields = pose.table()
-            seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
-            Y_seg = Y.reshape(2 * m, *Y.shape[2:])[2 * rows[at] + side]
-            Rs, ds, sss = poses_many(Y_seg, *pose.pose_fields(seg))
-            R.reshape(-1, 3, 3)[posed] = Rs
-            d.reshape(-1, 3)[posed] = ds
-            ss.reshape(-1)[posed] = sss
-            dof = fields[5].reshape(-1)[seg]
-            candidate = np.zeros(rows.size, dtype=bool)
-            residual_bad = (sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)
-            local = np.einsum("kpi,kij->kpj", Y_seg - ds[:, None, :], Rs)  # R^T (y - d) of every marker
-            vis = fields[1].reshape(-1, Y.shape[2])[seg] > 0.0
-            for k, segment in enumerate((pose.parent, pose.child)):
-                sel, p = side == k, segment.n_markers
-                bj = BlockJumps(
-                    segment.shape, local[sel, :p], vis[sel, :p], numbers[rows[seg_rows[k]]], residual_bad[sel],
-                    *segment.jump_limits,
-                )
-                candidate[seg_rows[k][bj.fails(_SS_MARGIN)]] = True
-                shapes.append(bj)
-            for k in range(2):
-                pos = seg_rows[k]
-                if not pos.size:
-                    continue
-                Rk = Rs[side == k]
-                close = np.diff(numbers[rows[pos]]) <= GATE_TURN_GAP_FRAMES
-                candidate[pos[1:]] |= close & (cos_turn(Rk[1:], Rk[:-1]) < COS_MAX_TURN + _COS_MARGIN)
-                candidate[pos[0]] |= pose.tracker(k).turns(Rk[0], int(numbers[rows[pos[0]]]), _COS_MARGIN)
-            if self._joint.armed:  # the joint test, each frame against the one before it (a superset)
-                both = np.flatnonzero(posed_ok.all(axis=1))
-                score = self._joint.scores_of(relative_poses(R[both], d[both]), numbers[rows[both]])
-                candidate[both[score > (1.0 - _SS_MARGIN) * self._joint.limit]] = True
-            sequential[rows[candidate]] = True
-        queue = np.flatnonzero(sequential).tolist()  # a heap: frames to take one by one, oldest first
-        queued = set(queue)
-        start = 0
-        while True:
-            f = heapq.heappop(queue) if queue else m
-            run = np.flatnonzero(entered[start:f]) + start
-            if run.size:
-                before_in = np.empty(run.size, dtype=bool)
-                before_in[0] = self._stats.chained if run[0] == start else False
-                before_in[1:] = np.diff(run) == 1
-                if run[0] > start:
-                    before_in[0] = bool(entered[run[0] - 1])
-                pos = np.searchsorted(rows, run)  # the run's rows among the posed ones
-                if self._joint.residual is not None:
-                    z = relative_poses(R[pos], d[pos])
-                    self._joint.passed(z, numbers[run], self._joint.scores_of(z, numbers[run]), False)
-                self._push_block(Y[run], slots[run], before_in, st, run, numbers, (R[pos], d[pos], ss[pos]))
-            if start < f:
-                self._stats.chained = bool(entered[f - 1])
-                lo, hi = np.searchsorted(rows, (start, f))
-                for k in range(2):
-                    seg = seg_rows[k]
-                    i = int(np.searchsorted(seg, hi)) - 1  # the run's last row that poses segment k
-                    if i >= 0 and seg[i] >= lo:
-                        pose.tracker(k).set_reference(R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
-                    if shapes:
-                        shapes[k].passed(int(np.searchsorted(seg, lo)), i + 1)
-            if f == m:
-                break
-            pose.Y[...] = Y[f]
-            counted = (not bool(parent_ok[f]), not bool(child_ok[f]))
-            self._add(missing[f], None if st is None else float(st[f]), int(numbers[f]), counted)
-            after = int(np.searchsorted(rows, f, side="right"))
-            for k in range(2):
-                seg = seg_rows[k]
-                i = int(np.searchsorted(seg, after))  # the next row that poses segment k
-                if i < seg.size:
-                    g = int(rows[seg[i]])
-                    if g not in queued and pose.tracker(k).turns(R[seg[i], k], int(numbers[g]), _COS_MARGIN):
-                        heapq.heappush(queue, g)
-                        queued.add(g)
-                if shapes and i > 0 and seg[i - 1] == after - 1:  # frame f posed segment k
-                    for j in shapes[k].recheck(i - 1, _SS_MARGIN).tolist():
-                        g = int(rows[seg[j]])
-                        if g not in queued:
-                            heapq.heappush(queue, g)
-                            queued.add(g)
-            if self._joint.armed:  # the next two frames with both segments posed, against the joint's references now
-                nxt = f + 1 + np.flatnonzero(entered[f + 1 :])[:2]
-                if nxt.size:
-                    at_rows = np.searchsorted(rows, nxt)
-                    score = self._joint.scores_of(relative_poses(R[at_rows], d[at_rows]), numbers[nxt])
-                    for g in nxt[score > (1.0 - _SS_MARGIN) * self._joint.limit].tolist():
-                        if g not in queued:
-                            heapq.heappush(queue, g)
-                            queued.add(g)
-            start = f + 1
-
-    def _push_block(
-        self,
-        Y: FloatArray,
-        which: NDArray[np.intp],
-        paired: NDArray[np.bool_],
-        st: FloatArray | None,
-        rows: NDArray[np.intp],
-        numbers: NDArray[np.int64],
-        poses: tuple[FloatArray, FloatArray, FloatArray] | None = None,
-    ) -> None:
-        """Pose the frames that enter the statistics (``Y`` (M, 2, Pmax, 3), pair sets of slots ``which``) and push them.
-
-        ``rows``: their indices in the block; ``numbers``: the block's frame numbers (the times of
-        frames without stamps). ``poses``: their ``(R, d, ss)`` from :func:`~jointfit_core.segment_pair.poses_many` when already computed.
-        """
-        pose = self._pose
-        assert pose is not None
-        m = Y.shape[0]
-        if poses is None:
-            seg = (2 * which[:, None] + np.arange(2)).ravel()
-            R, d, ss = poses_many(Y.reshape(2 * m, *Y.shape[2:]), *pose.pose_fields(seg))
-            poses = (R.reshape(m, 2, 3, 3), d.reshape(m, 2, 3), ss.reshape(m, 2))
-        R, d, ss = poses
-        stamps = None if st is None else st[rows]
-        times = stamps if stamps is not None else numbers[rows] / NOMINAL_RATE_HZ
-        table = pose.table()
-        self._stats.add_block(R, d, ss, table[6], table[5], which, paired, stamps, np.asarray(times, dtype=np.float64))
-        self._version += 1
+        joint_blocks.update_many(self, parent, child, stamps)
 
     def _arrive(self) -> int:
         """Number a frame that arrived (well-formed, whatever its stamp): the turn test's clock."""
@@ -994,8 +653,8 @@ class OnlineJoint:
         limits with it (:meth:`~jointfit_core.segment_tracker.SegmentTracker.set_limits`:
         the residual's, and ``gate^2`` times each segment's normal jump,
         :class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again with each
-        estimate and every :data:`GATE_REFRESH_FRAMES` frames (per-frame cost; the update
-        and block paths then judge alike, :meth:`_update_many` cutting its blocks there).
+        estimate and every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames (per-frame cost; the update
+        and block paths then judge alike, :func:`~jointfit_core.joint_blocks.update_many` cutting its blocks there).
         """
         key = (self.gate, self._solved_version, self._arrivals // GATE_REFRESH_FRAMES)
         if key != self._gate_key:

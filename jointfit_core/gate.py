@@ -32,7 +32,7 @@ before this module, and a failing frame becomes a provisional reference until
 one passes (so a ghost in that frame cannot lock the segment out). Its level
 is the window's pooled pose-fit residual (on skin markers: the noise plus the
 cluster's deformation), read again every
-:data:`~jointfit_core.estimator.GATE_REFRESH_FRAMES` frames, so that a marker
+:data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames, so that a marker
 back from an occlusion, with no recent reference, is judged against the
 deformation the cluster normally shows, not the template frames' noise.
 

@@ -33,6 +33,7 @@ from .segments import POSE_VAR_RATIO_MAX
 
 __all__ = [
     "GATE_MAX_TURN_DEG",
+    "GATE_REFRESH_FRAMES",
     "GATE_RELOCK_FRAMES",
     "GATE_TURN_GAP_FRAMES",
     "TEMPLATE_DEV_FACTOR",
@@ -64,6 +65,12 @@ GATE_TURN_GAP_FRAMES = 10
 #: Outlier gate: after this many frames in a row held out by the turn test, the test starts afresh
 #: (the reference itself may be the wrong one). Swaps that last longer get into the statistics.
 GATE_RELOCK_FRAMES = 500
+
+#: Outlier gate: its limits (residual level and normal jump of each segment, :meth:`SegmentTracker.set_limits`)
+#: are read again every this many frames, and with every estimate: a skin cluster's deformation grows and
+#: shrinks with the joint angles, and without estimates (a whole recording in one block, the node's first
+#: seconds) limits frozen at the template frames' noise would hold a deforming cluster's markers out for good.
+GATE_REFRESH_FRAMES = 50
 
 #: ``cos(GATE_MAX_TURN_DEG)``: a turn test fails below it.
 COS_MAX_TURN = float(np.cos(np.deg2rad(GATE_MAX_TURN_DEG)))
