@@ -15,24 +15,19 @@ residual (:mod:`jointfit_core.serial`).
 from __future__ import annotations
 
 import itertools
-import math
-from dataclasses import asdict
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import joint_blocks
+from . import joint_blocks, joint_file
 from .artefact import check_attachment
-from .calibration import fit_from_dict, fit_to_dict
 from .checks import check_frame, check_vector3
 from .errors import InputError
 from .hinge_from_sums import PoseSumsAxis
+from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
-from .joint_sums import (
-    _Z,
-    RelativePoseSums,
-)
+from .joint_sums import RelativePoseSums
 from .joint_world import JointOutput, WorldOutput
 from .pose import MIN_POSE_MARKERS
 from .segment_pair import GateVerdict, PairSet, SegmentPair, poses
@@ -73,9 +68,6 @@ FloatArray = NDArray[np.float64]
 #: (noise-free or rounding-level data would otherwise fail it in every frame).
 GATE_SIGMA_FLOOR = 1e-6
 
-#: ``format`` and ``version`` keys of a saved calibration (:meth:`OnlineJoint.to_dict`).
-CALIBRATION_FORMAT = "jointfit-calibration"
-CALIBRATION_VERSION = 1
 _KINDS = ("ball", "hinge")
 
 
@@ -115,55 +107,11 @@ def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple
     return radius * tetra, sigma
 
 
-def _serial_to_dict(serial: SerialInflation) -> dict[str, float | None]:
-    return {k: (None if not np.isfinite(v) else float(v)) for k, v in asdict(serial).items()}
-
-
-def _serial_from_dict(data: Any) -> SerialInflation:
-    if not isinstance(data, dict):
-        raise InputError(f"calibration: serial_inflation: expected a mapping, got {type(data).__name__}")
-    keys = ("rho", "rho_raw", "factor", "n_pairs", "frame_interval_s")  # the last absent before it existed
-    vals = {k: float("nan") if data.get(k) is None else float(data[k]) for k in keys}
-    return SerialInflation(**vals)
-
-
 # --------------------------------------------------------------------------- solving a window
 
 #: Estimator states whose solve results may be installed, numbered across all estimators of the process
 #: (a runner replaces its estimator on reset: an answer for the old one must not fit the new one).
 _GENERATIONS = itertools.count(1)
-
-
-def _check_saved_solution(sol: PoseSumsCentre | PoseSumsAxis, template_size: float) -> None:
-    """Refuse a saved estimate that no fit could have made: non-finite, a negative variance, absurdly far.
-
-    Raises
-    ------
-    InputError
-    """
-    missing = [f for f in sol.__dataclass_fields__ if getattr(sol, f) is None]
-    if missing:
-        raise InputError(f"calibration: the estimate has no {', '.join(missing)}")
-    arrays = {f: np.asarray(getattr(sol, f)) for f in sol.__dataclass_fields__ if isinstance(getattr(sol, f), np.ndarray)}
-    bad = [f for f, a in arrays.items() if not np.isfinite(a).all()]
-    if bad or not math.isfinite(sol.rms) or sol.rms < 0.0:
-        raise InputError(f"calibration: the estimate is not finite ({', '.join(bad) or 'rms'})")
-    for f, a in arrays.items():
-        if f.startswith("cov") and (a.ndim != 2 or a.shape[0] != a.shape[1] or (np.diag(a) < 0.0).any()):
-            raise InputError(f"calibration: the estimate's {f} is not a covariance (negative variance or shape {a.shape})")
-        if f.startswith("direction") and abs(float(np.linalg.norm(a)) - 1.0) > 1e-6:
-            raise InputError(f"calibration: the estimate's {f} is not a unit vector (norm {np.linalg.norm(a):.6g})")
-    limit = _SAVED_REACH * max(template_size, 1e-300)
-    for f in ("centre_parent", "centre_child", "point_parent", "point_child"):
-        if f in arrays and float(np.abs(arrays[f]).max()) > limit:
-            raise InputError(
-                f"calibration: the estimate's {f} is {np.abs(arrays[f]).max():.3g} from its template, more than "
-                f"{_SAVED_REACH:g} times the template's size"
-            )
-
-
-#: A saved joint farther from its segment than this many template sizes is refused as absurd.
-_SAVED_REACH = 1000.0
 
 
 class OnlineJoint:
@@ -417,7 +365,7 @@ class OnlineJoint:
         self._serial: SerialInflation | None = None
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
-        self._matched: FloatArray | None = None  # hinge: point_child_matched (see _matched_child_point)
+        self._matched: FloatArray | None = None  # hinge: point_child_matched (joint_file.matched_child_point)
         # The outlier gate: frames are numbered as they arrive (see _arrive: its turn test's clock);
         # its limits are cached (_gate_var); each segment's memory is in its tracker.
         self._arrivals = 0
@@ -1006,71 +954,18 @@ class OnlineJoint:
         self._frozen = False
 
     def to_dict(self) -> dict[str, Any]:
-        """The calibration as plain YAML-able types: settings, templates, noise and estimate.
+        """The calibration as plain YAML-able types: settings, templates, noise and estimate (:mod:`jointfit_core.joint_file`).
 
         Raises
         ------
         InputError, NotIdentifiableError
             No estimate can be made yet.
         """
-        sol = self.estimate()
-        p_tpl, c_tpl = self.templates
-        assert p_tpl is not None and c_tpl is not None
-        fit = fit_to_dict(sol)
-        self._matched = self._matched_child_point(sol)
-        spec = self.spec
-        return {
-            "format": CALIBRATION_FORMAT,
-            "version": CALIBRATION_VERSION,
-            "kind": self.kind,
-            "window": spec.frames,
-            "window_s": spec.seconds,
-            "half_life": spec.half_life,
-            "half_life_s": spec.half_life_s,
-            "template_frames": self.template_frames,
-            "reference_direction": None if self.reference_direction is None else self.reference_direction.tolist(),
-            "n_markers": list(self.n_markers) if self.n_markers is not None else None,
-            "template_parent": p_tpl.tolist(),
-            "template_child": c_tpl.tolist(),
-            "noise_std_parent": self._sigma[0],
-            "noise_std_child": self._sigma[1],
-            "noise_std_fixed": [v is not None for v in self._noise_arg],
-            "templates_fixed": [v is not None for v in self._templates_arg],
-            "serial_correlation": self.serial_correlation,
-            "gate": self.gate,
-            "serial_inflation": None if self._serial is None else _serial_to_dict(self._serial),
-            "attachment": list(self.attachment),
-            "artefact_scale": self._artefact_scale,
-            "estimate": fit,
-            "point_child_matched": None if self._matched is None else self._matched.tolist(),
-        }
-
-    def _matched_child_point(self, sol: PoseSumsCentre | PoseSumsAxis) -> FloatArray | None:
-        """Hinge: the child-frame point that is the parent's axis point (``point_parent``), from the window's mean pose.
-
-        ``point_child`` is the axis point nearest the child's own origin, another point
-        of the axis; over the window the child's maps to the parent's axis line at
-        ``point_parent + s direction_parent`` with ``s = direction_parent . (mean(Q) p_c +
-        mean(t) - p_p)`` (linear in the relative pose, so exact from the sums); the
-        parent's point is then ``p_c - s direction_child`` in the child frame. None for
-        a ball, or without frames in the statistics (a loaded calibration keeps its own).
-        """
-        if not isinstance(sol, PoseSumsAxis):
-            return None
-        try:
-            sums = self._entered_sums()
-        except InputError:
-            return self._matched
-        if not sums[0] > 0.0:
-            return self._matched
-        Z = (sums[_Z] / sums[0]).reshape(3, 4)
-        s = float(sol.direction_parent @ (Z[:, :3] @ sol.point_child + Z[:, 3] - sol.point_parent))
-        out: FloatArray = sol.point_child - s * sol.direction_child
-        return out
+        return joint_file.to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> OnlineJoint:
-        """A frozen estimator from a saved calibration (:meth:`to_dict`).
+        """A frozen estimator from a saved calibration (:meth:`to_dict`; :mod:`jointfit_core.joint_file`).
 
         The templates and the estimate are restored, so per-frame outputs
         start with the first frame. :meth:`thaw` resumes estimation (with
@@ -1081,68 +976,4 @@ class OnlineJoint:
         InputError
             Not a jointfit calibration, a newer version, or malformed fields.
         """
-        if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
-            raise InputError(f"calibration: expected a dict with format {CALIBRATION_FORMAT!r}")
-        version = data.get("version")
-        if not isinstance(version, int) or version > CALIBRATION_VERSION or version < 1:
-            raise InputError(
-                f"calibration: version {version!r} is not supported (this jointfit reads 1..{CALIBRATION_VERSION})"
-            )
-        try:
-            est = cls(
-                str(data["kind"]),
-                data.get("window"),
-                window_s=data.get("window_s"),
-                half_life=data.get("half_life"),
-                half_life_s=data.get("half_life_s"),
-                template_frames=int(data.get("template_frames", 50)),
-                reference_direction=data.get("reference_direction"),
-                n_markers=(int(data["n_markers"][0]), int(data["n_markers"][1])),
-                noise_std=tuple(  # type: ignore[arg-type]
-                    float(data[f"noise_std_{side}"]) if fixed else None
-                    for side, fixed in zip(("parent", "child"), data.get("noise_std_fixed", [False, False]), strict=True)
-                ),
-                serial_correlation=data.get("serial_correlation", True),  # absent before it existed
-                gate=float(data.get("gate", 5.0)),
-                attachment=tuple(data.get("attachment", ("rigid", "rigid"))),  # absent before it existed
-            )
-            tp = np.array(data["template_parent"], dtype=np.float64)
-            tc = np.array(data["template_child"], dtype=np.float64)
-            assert est.n_markers is not None
-            if tp.shape != (est.n_markers[0], 3) or tc.shape != (est.n_markers[1], 3) or not (
-                np.isfinite(tp).all() and np.isfinite(tc).all()
-            ):
-                raise InputError(
-                    f"calibration: templates of shapes {tp.shape} and {tc.shape} do not match n_markers {est.n_markers}"
-                )
-            est._make_segments(*est.n_markers)
-            assert est._pose is not None
-            est._pose.parent.set_template(tp)
-            est._pose.child.set_template(tc)
-            tf = data.get("templates_fixed", [False, False])
-            est._templates_arg = (tp if tf[0] else None, tc if tf[1] else None)
-            fit = data["estimate"]
-            if est.kind == "ball":
-                est._solution = fit_from_dict(PoseSumsCentre, fit)
-            else:
-                est._solution = fit_from_dict(PoseSumsAxis, fit)
-            _check_saved_solution(est._solution, max(float(np.abs(tp).max()), float(np.abs(tc).max())))
-            est._sigma = (float(data["noise_std_parent"]), float(data["noise_std_child"]))
-            if not all(math.isfinite(v) and v > 0.0 for v in est._sigma):
-                raise InputError(f"calibration: the noise sds {est._sigma} are not finite positive numbers")
-            serial = data.get("serial_inflation")  # absent from calibrations saved before it existed
-            est._serial = None if serial is None else _serial_from_dict(serial)
-            scale = float(data.get("artefact_scale", 0.0))  # absent before the soft-tissue part existed
-            if not (math.isfinite(scale) and scale >= 0.0):
-                raise InputError(f"calibration: the artefact scale {scale!r} is not a finite number >= 0")
-            est._artefact_scale = scale  # (saved again as loaded: a save after a restart writes the same file)
-            matched = data.get("point_child_matched")  # absent before it existed
-            est._matched = None if matched is None else check_vector3(matched, name="point_child_matched")
-            est._outputs.clear()
-            est._joint.arm(est._solution, est.length_scale)
-        except InputError:
-            raise
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"calibration: a field is missing or malformed: {exc!r}") from None
-        est._frozen = True
-        return est
+        return joint_file.from_dict(cls, data)
