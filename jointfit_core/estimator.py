@@ -107,6 +107,73 @@ def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple
     return radius * tetra, sigma
 
 
+# --------------------------------------------------------------------------- the constructor's checks
+
+
+def _check_n_markers(n_markers: tuple[int, int] | None) -> tuple[int, int] | None:
+    """:class:`OnlineJoint`'s ``n_markers`` checked: two counts of at least :data:`~jointfit_core.pose.MIN_POSE_MARKERS`, or None."""
+    if n_markers is None:
+        return None
+    if len(n_markers) != 2 or min(int(n_markers[0]), int(n_markers[1])) < MIN_POSE_MARKERS:
+        raise InputError(f"n_markers: expected two counts >= {MIN_POSE_MARKERS}, got {n_markers!r}")
+    return (int(n_markers[0]), int(n_markers[1]))
+
+
+def _check_templates(
+    templates: tuple[ArrayLike | None, ArrayLike | None] | None, n_markers: tuple[int, int] | None
+) -> tuple[tuple[FloatArray | None, FloatArray | None], tuple[int, int] | None]:
+    """:class:`OnlineJoint`'s fixed ``templates`` checked against ``n_markers`` (checked).
+
+    Returns
+    -------
+    templates : (ndarray or None, ndarray or None)
+        Parent (Pa, 3) and child (Pc, 3) float64 copies, input units (None: to build).
+    n_markers : (int, int) or None
+        ``n_markers``, or the fixed templates' counts when it is None.
+
+    Raises
+    ------
+    InputError
+        Not a pair, a template not (P >= 3, 3), non-finite or collinear, or
+        its count not ``n_markers``'; one template fixed without ``n_markers``.
+    """
+    fixed: list[FloatArray | None] = [None, None]
+    if templates is not None:
+        if len(templates) != 2:
+            raise InputError("templates: expected a pair (parent, child); None for a template to build")
+        for k, x in enumerate(templates):
+            if x is None:
+                continue
+            arr = np.array(x, dtype=np.float64)
+            if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < MIN_POSE_MARKERS:
+                raise InputError(f"templates: expected arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
+            if not (np.isfinite(arr).all() and shape_ok(arr)):
+                raise InputError("templates: expected finite, non-collinear template points")
+            if n_markers is not None and n_markers[k] != arr.shape[0]:
+                raise InputError(f"templates: {arr.shape[0]} points differ from n_markers {n_markers}")
+            fixed[k] = arr
+        if any(x is not None for x in fixed) and n_markers is None:
+            if fixed[0] is None or fixed[1] is None:
+                raise InputError("templates: with one template fixed, give n_markers for both segments")
+            n_markers = (fixed[0].shape[0], fixed[1].shape[0])
+    return (fixed[0], fixed[1]), n_markers
+
+
+def _check_noise(noise_std: tuple[float | None, float | None] | None) -> tuple[float | None, float | None]:
+    """:class:`OnlineJoint`'s fixed ``noise_std`` checked: two finite numbers > 0 or None (input units)."""
+    noise: list[float | None] = [None, None]
+    if noise_std is not None:
+        try:
+            for k in range(2):
+                if noise_std[k] is not None:
+                    noise[k] = float(noise_std[k])  # type: ignore[arg-type]
+        except (TypeError, ValueError, IndexError):
+            raise InputError(f"noise_std: expected two numbers > 0 (or None), got {noise_std!r}") from None
+        if any(v is not None and not (np.isfinite(v) and v > 0) for v in noise):
+            raise InputError(f"noise_std: expected finite numbers > 0 (or None), got {noise_std!r}")
+    return (noise[0], noise[1])
+
+
 # --------------------------------------------------------------------------- solving a window
 
 #: Estimator states whose solve results may be installed, numbered across all estimators of the process
@@ -284,41 +351,8 @@ class OnlineJoint:
             if reference_direction is None
             else check_vector3(reference_direction, name="reference_direction", unit=True)
         )
-        if n_markers is not None:
-            if len(n_markers) != 2 or min(int(n_markers[0]), int(n_markers[1])) < MIN_POSE_MARKERS:
-                raise InputError(f"n_markers: expected two counts >= {MIN_POSE_MARKERS}, got {n_markers!r}")
-            n_markers = (int(n_markers[0]), int(n_markers[1]))
-        fixed: list[FloatArray | None] = [None, None]
-        if templates is not None:
-            if len(templates) != 2:
-                raise InputError("templates: expected a pair (parent, child); None for a template to build")
-            for k, x in enumerate(templates):
-                if x is None:
-                    continue
-                arr = np.array(x, dtype=np.float64)
-                if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < MIN_POSE_MARKERS:
-                    raise InputError(f"templates: expected arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
-                if not (np.isfinite(arr).all() and shape_ok(arr)):
-                    raise InputError("templates: expected finite, non-collinear template points")
-                if n_markers is not None and n_markers[k] != arr.shape[0]:
-                    raise InputError(f"templates: {arr.shape[0]} points differ from n_markers {n_markers}")
-                fixed[k] = arr
-            if any(x is not None for x in fixed) and n_markers is None:
-                if fixed[0] is None or fixed[1] is None:
-                    raise InputError("templates: with one template fixed, give n_markers for both segments")
-                n_markers = (fixed[0].shape[0], fixed[1].shape[0])
-        self._templates_arg: tuple[FloatArray | None, FloatArray | None] = (fixed[0], fixed[1])
-        noise: list[float | None] = [None, None]
-        if noise_std is not None:
-            try:
-                for k in range(2):
-                    if noise_std[k] is not None:
-                        noise[k] = float(noise_std[k])  # type: ignore[arg-type]
-            except (TypeError, ValueError, IndexError):
-                raise InputError(f"noise_std: expected two numbers > 0 (or None), got {noise_std!r}") from None
-            if any(v is not None and not (np.isfinite(v) and v > 0) for v in noise):
-                raise InputError(f"noise_std: expected finite numbers > 0 (or None), got {noise_std!r}")
-        self._noise_arg: tuple[float | None, float | None] = (noise[0], noise[1])
+        self._templates_arg, n_markers = _check_templates(templates, _check_n_markers(n_markers))
+        self._noise_arg = _check_noise(noise_std)
         self._n_markers_arg = n_markers
         if not isinstance(serial_correlation, (bool, np.bool_)):
             raise InputError(f"serial_correlation: expected True or False, got {serial_correlation!r}")
