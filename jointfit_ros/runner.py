@@ -5,7 +5,8 @@ tested without ROS: :class:`JointRunner` takes marker frames (or segment
 poses, as virtual markers), keeps its :class:`~jointfit_core.estimator.OnlineJoint`
 solved every ``estimate_period``, fixes the hinge sign, counts what it
 drops, summarises its state for ``/diagnostics`` and saves and loads its
-calibration.
+calibration. The absurd-marker screen a frame meets first, the workspace, the
+output and unit checks are :mod:`jointfit_ros.absurd_values`.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ from numpy.typing import NDArray
 from jointfit_core.atomic import remove_stale_temporaries
 from jointfit_core.axis_sign import SIGN_SD_MAX_DEG, direction_sd_deg, hinge_sign
 from jointfit_core.calibration import load_calibration, save_calibration
-from jointfit_core.checks import small_all_finite
 from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
 from jointfit_core.estimator import (
     JointOutput,
@@ -38,6 +38,7 @@ from jointfit_core.gate import gated_verdict
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
+from .absurd_values import ABSURD_RADII, MarkerScreen, output_sane, unit_problem, workspace_limit
 from .activity import InputActivity
 from .consistency_status import ConsistencyMonitor
 from .live_geometry import LiveGeometry
@@ -45,7 +46,7 @@ from .params import JointConfig, NodeConfig, calibration_path
 from .progress import coverage_values, done_check, estimate_sd
 from .sync import StampMatcher
 
-__all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE"]
+__all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE", "output_sane", "unit_problem"]
 
 FloatArray = NDArray[np.float64]
 
@@ -54,32 +55,6 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
 #: Input stamps kept to measure the input rate.
 _RATE_SAMPLES = 200
-
-#: Metres per unit of the ``units`` parameter.
-_METRES = {"m": 1.0, "cm": 0.01, "mm": 0.001}
-#: Plausible rms radius of a segment's marker cluster (or virtual markers), metres.
-CLUSTER_RADIUS_M = (0.003, 1.0)
-
-
-def unit_problem(rms_radius: float, units: str) -> str:
-    """Why a cluster's rms radius (input units) is implausible for ``units``; empty when plausible.
-
-    A mocap stream in millimetres sent to a node configured for metres (or the
-    reverse) gives clusters 1000 times too large (small): the estimates are then
-    in the wrong unit for every consumer, and the noise settings are off.
-    """
-    if not rms_radius > 0.0 or units not in _METRES:
-        return ""
-    metres = rms_radius * _METRES[units]
-    low, high = CLUSTER_RADIUS_M
-    if low <= metres <= high:
-        return ""
-    guess = min(_METRES, key=lambda u: abs(np.log10(rms_radius * _METRES[u] / 0.05)))
-    return (
-        f"marker clusters are {rms_radius:.3g} {units} in rms radius, implausible for units '{units}' "
-        f"(expected {low:g}-{high:g} m): the stream looks like {guess}; check the driver's units or set units"
-    )
-
 
 @dataclass(frozen=True)
 class Status:
@@ -90,23 +65,11 @@ class Status:
     values: dict[str, Any]
 
 
-#: A marker farther than this many template rms radii from its segment's mean is absurd (a broken value).
-ABSURD_RADII = 20.0
-
-#: Without a workspace, no output beyond this (input units: 1e9 mm or m) or with a larger sd is published.
-ABSURD_OUTPUT = 1e9
-
 #: The runner's counters (see :class:`JointRunner`).
 _COUNTERS = (
     "frames", "outputs", "malformed", "unmatched", "estimate_failures", "absurd_markers", "absurd_outputs",
     "withheld_unidentified", "withheld_unsigned",
 )
-
-
-def workspace_limit(node: NodeConfig) -> float:
-    """The ``workspace`` half-width in input units (inf when off or the units are unknown)."""
-    metres = _METRES.get(node.units, 0.0)
-    return node.workspace / metres if node.workspace > 0.0 and metres > 0.0 else math.inf
 
 
 def _lever(sol: PoseSumsCentre | PoseSumsAxis) -> float:
@@ -136,21 +99,6 @@ def widened_output(out: JointOutput, lever: float) -> JointOutput:
         d = out.direction
         cov_direction = cov_direction + np.radians(AXIS_SD_MAX_DEG) ** 2 * (np.eye(3) - np.outer(d, d))
     return replace(out, cov=cov, cov_direction=cov_direction)
-
-
-def output_sane(out: JointOutput, limit: float) -> bool:
-    """Whether an output may be published: finite, within ``limit`` (input units; inf: :data:`ABSURD_OUTPUT`), its sd below it."""
-    if not (small_all_finite(out.position) and small_all_finite(out.cov)):
-        return False
-    if out.direction is not None and not (
-        out.cov_direction is not None and small_all_finite(out.direction) and small_all_finite(out.cov_direction)
-    ):
-        return False
-    if not math.isfinite(limit):
-        limit = ABSURD_OUTPUT
-    x, y, z = out.position.tolist()
-    c = out.cov.ravel().tolist()
-    return max(abs(x), abs(y), abs(z)) <= limit and max(c[0], c[4], c[8]) <= limit**2
 
 
 #: Fully visible frames compared with a loaded calibration's templates (:meth:`JointRunner._check_layout`).
@@ -271,11 +219,9 @@ class JointRunner:
         self.sign_problem = ""  # why a configured sign convention cannot be honoured
         self._toward_row = node.marker_index(cfg.axis_toward_marker) if cfg.axis_toward_marker else -1
         self._from_row = node.marker_index(cfg.axis_from_marker) if cfg.axis_from_marker else -1
-        self._cluster_rows = np.concatenate([self.parent_rows, self.child_rows])
-        # where each segment starts in the gathered clusters (_compact), when both have markers
-        self._compact_starts = (
-            np.array([0, len(self.parent_rows)], dtype=np.intp) if len(self.parent_rows) and len(self.child_rows) else None
-        )
+        #: The absurd-marker test of the two clusters (:meth:`_in_workspace`).
+        self.screen = MarkerScreen(self.parent_rows, self.child_rows)
+        self._cluster_rows = self.screen.cluster_rows
         self._limit_node: NodeConfig | None = None
         self._limit = math.inf
         self.estimator = self._new_estimator()
@@ -587,71 +533,20 @@ class JointRunner:
     def _in_workspace(self, frames: FloatArray) -> FloatArray:
         """``frames`` (..., P, 3) with absurd markers set missing (a copy when any is); counted.
 
-        Absurd: a coordinate beyond the ``workspace`` (when set), or a marker
-        farther from its segment's visible markers' mean than
-        :data:`ABSURD_RADII` times the larger template's rms radius (once the
-        templates exist): no swap, ghost or skin motion puts a marker there,
-        only a broken value (a finite 1e299 from a driver). One such marker
-        drags the mean of its segment, so its neighbours may go with it in
-        that frame: the segment is then not posed there.
+        Absurd (:meth:`MarkerScreen.screened <jointfit_ros.absurd_values.MarkerScreen.screened>`):
+        a coordinate beyond the ``workspace`` (when set), or a marker farther
+        from its segment's visible markers' mean than
+        :data:`~jointfit_ros.absurd_values.ABSURD_RADII` times the larger
+        template's rms radius (once the templates exist).
         """
-        limit = self._workspace_limit()
-        scale = ABSURD_RADII * self.estimator.length_scale
-        out: NDArray[np.bool_] | None = None
-        if not math.isfinite(limit) and self._compact(frames, scale):
-            return frames
-        with np.errstate(invalid="ignore", over="ignore"):
-            if math.isfinite(limit):
-                out = np.asarray((np.abs(frames[..., self._cluster_rows, :]) > limit).any(axis=-1))
-            if scale > 0.0:
-                for rows in (self.parent_rows, self.child_rows):
-                    y = frames[..., rows, :]
-                    # no marker is far from the mean when the segment's extent is within the limit (the usual
-                    # frame: two reductions instead of the test below)
-                    if y.shape[-2] == 0 or not y.size:  # a segment of pose topics (no markers), or no frames
-                        continue
-                    if bool((np.fmax.reduce(y, axis=-2) - np.fmin.reduce(y, axis=-2) <= scale).all()):
-                        continue
-                    seen = ~np.isnan(y[..., :1])
-                    centre = np.where(seen, y, 0.0).sum(axis=-2, keepdims=True) / np.maximum(
-                        seen.sum(axis=-2, keepdims=True), 1
-                    )
-                    # (an infinite value is left to the estimator, which refuses the frame as malformed)
-                    far = np.asarray((np.abs(y - centre) > scale).any(axis=-1) & np.isfinite(centre).all(axis=-1))
-                    far &= ~np.isinf(y).any(axis=-1)
-                    if far.any():
-                        part = np.zeros(frames.shape[:-1], dtype=bool)
-                        part[..., rows] = far
-                        part = part[..., self._cluster_rows]
-                        out = part if out is None else out | part
-        if out is None or not out.any():
-            return frames
-        frames = frames.copy()
-        where = np.zeros(frames.shape[:-1], dtype=bool)
-        where[..., self._cluster_rows] = out
-        frames[where] = np.nan
-        self.counters["absurd_markers"] += int(out.sum())
-        self.last_error = (
-            f"{int(out.sum())} absurd marker position(s) (beyond the workspace or far outside their segment) "
-            "treated as missing"
-        )
+        frames, n = self.screen.screened(frames, self._workspace_limit(), ABSURD_RADII * self.estimator.length_scale)
+        if n:
+            self.counters["absurd_markers"] += n
+            self.last_error = (
+                f"{n} absurd marker position(s) (beyond the workspace or far outside their segment) "
+                "treated as missing"
+            )
         return frames
-
-    def _compact(self, frames: FloatArray, scale: float) -> bool:
-        """Whether every segment of ``frames`` (..., P, 3) spans at most ``scale`` per coordinate (no absurd marker).
-
-        The usual frame's test of :meth:`_in_workspace` (no marker far from its segment's mean
-        when the segment's extent is within the limit), for both segments of markers at once:
-        one gather and one ``reduceat`` per bound instead of two per segment. False when it does
-        not settle it (a segment without markers, no templates yet, no frames, a wide segment
-        or an all-missing coordinate): the segment-by-segment test then decides.
-        """
-        if not (scale > 0.0 and self._compact_starts is not None and frames.size):
-            return False
-        y = frames[..., self._cluster_rows, :]
-        with np.errstate(invalid="ignore", over="ignore"):
-            spread = np.fmax.reduceat(y, self._compact_starts, axis=-2) - np.fmin.reduceat(y, self._compact_starts, axis=-2)
-            return bool((spread <= scale).all())
 
     def _workspace_limit(self) -> float:
         """:func:`workspace_limit` of the node's configuration (kept while :attr:`node` is the same object)."""

@@ -1,6 +1,6 @@
-"""The absurd-marker test's shortcut for compact segments (:meth:`JointRunner._compact`) changes no verdict.
+"""The absurd-marker test's shortcut for compact segments (:meth:`MarkerScreen.compact`) changes no verdict.
 
-With the shortcut disabled (``_compact_starts`` None) every frame takes the segment-by-segment
+With the shortcut disabled (``compact_starts`` None) every frame takes the segment-by-segment
 test; single frames and blocks, clean, with absurd, missing and infinite markers, must come out
 the same (the frames, the counters, the message).
 """
@@ -25,7 +25,7 @@ def test_compact_shortcut_gives_the_segment_by_segment_verdicts() -> None:
         fast.markers_frame(round(t[k] * 1e9), frames[k])
         slow.markers_frame(round(t[k] * 1e9), frames[k])
     assert fast.estimator.length_scale > 0.0  # templates built: the shortcut applies
-    slow._compact_starts = None
+    slow.screen.compact_starts = None
     rng = np.random.default_rng(1)
     rows = fast._cluster_rows
     shortcuts = 0
@@ -41,7 +41,7 @@ def test_compact_shortcut_gives_the_segment_by_segment_verdicts() -> None:
             frame[fast.parent_rows] = np.nan  # a segment all missing
         elif kind == 4:
             frame[row] = 1e300
-        shortcuts += fast._compact(frame, 20.0 * fast.estimator.length_scale)
+        shortcuts += fast.screen.compact(frame, 20.0 * fast.estimator.length_scale)
         a, b = fast._in_workspace(frame), slow._in_workspace(frame)
         np.testing.assert_array_equal(a, b)
         assert fast.counters == slow.counters and fast.last_error == slow.last_error
