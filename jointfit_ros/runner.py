@@ -5,8 +5,10 @@ tested without ROS: :class:`JointRunner` takes marker frames (or segment
 poses, as virtual markers), keeps its :class:`~jointfit_core.estimator.OnlineJoint`
 solved every ``estimate_period``, fixes the hinge sign, counts what it
 drops, summarises its state for ``/diagnostics`` and saves and loads its
-calibration. The absurd-marker screen a frame meets first, the workspace, the
-output and unit checks are :mod:`jointfit_ros.absurd_values`.
+calibration. Two of its parts are modules of their own:
+:mod:`jointfit_ros.absurd_values` (the absurd-marker screen a frame meets
+first, the workspace, the output and unit checks) and
+:mod:`jointfit_ros.joint_diagnostics` (the ``/diagnostics`` status it reports).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import shutil
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -34,36 +36,23 @@ from jointfit_core.estimator import (
     SolveResult,
     virtual_markers_template,
 )
-from jointfit_core.gate import gated_verdict
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .absurd_values import ABSURD_RADII, MarkerScreen, output_sane, unit_problem, workspace_limit
 from .activity import InputActivity
 from .consistency_status import ConsistencyMonitor
+from .joint_diagnostics import ERROR, OK, STALE, WARN, Status, joint_status, live_status
 from .live_geometry import LiveGeometry
 from .params import JointConfig, NodeConfig, calibration_path
-from .progress import coverage_values, done_check, estimate_sd
 from .sync import StampMatcher
 
 __all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE", "output_sane", "unit_problem"]
 
 FloatArray = NDArray[np.float64]
 
-#: diagnostic_msgs/DiagnosticStatus levels.
-OK, WARN, ERROR, STALE = 0, 1, 2, 3
-
 #: Input stamps kept to measure the input rate.
 _RATE_SAMPLES = 200
-
-@dataclass(frozen=True)
-class Status:
-    """A joint's state for ``/diagnostics``: level, one-line message and key/values."""
-
-    level: int
-    message: str
-    values: dict[str, Any]
-
 
 #: The runner's counters (see :class:`JointRunner`).
 _COUNTERS = (
@@ -128,34 +117,6 @@ def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
         if saved != value and not (saved is None and value in (None, 0.0)):
             notes.append(f"the calibration's {key} is {saved!r}, the configuration's {value!r}: the file's is used")
     return notes
-
-
-def _largest_sd(cov: FloatArray) -> float:
-    return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
-
-
-def _artefact_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: str) -> dict[str, Any]:
-    """The statistical and with-artefact parts of the estimate's sd, for /diagnostics (keys with units ``u``)."""
-    values: dict[str, Any] = {"attachment": "/".join(est.attachment)}
-    if "skin" in est.attachment:
-        values["movement in the window (s)"] = round(est.movement_seconds, 2)
-    stat = est.statistical_solution
-    if stat is None:
-        return values
-    values[f"artefact scale ({u}/rad)"] = est.artefact_scale
-    if isinstance(sol, PoseSumsCentre) and isinstance(stat, PoseSumsCentre):
-        values[f"statistical sd ({u})"] = _largest_sd(stat.cov_parent)
-        values[f"with-artefact sd ({u})"] = _largest_sd(sol.cov_parent)
-    elif isinstance(sol, PoseSumsAxis) and isinstance(stat, PoseSumsAxis):
-        values["statistical direction sd (deg)"] = round(direction_sd_deg(stat.cov_direction_parent), 3)
-        values["with-artefact direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
-        values[f"statistical point sd ({u})"] = _largest_sd(stat.cov_point_parent)
-        values[f"with-artefact point sd ({u})"] = _largest_sd(sol.cov_point_parent)
-    return values
-
-
-def _spread_deg(deficit: float) -> float:
-    return float(np.rad2deg(np.sqrt(2.0 * max(deficit, 0.0))))
 
 
 class JointRunner:
@@ -844,105 +805,10 @@ class JointRunner:
         return (len(self._stamps) - 1) / (self._stamps[-1] - self._stamps[0])
 
     def status(self) -> Status:
-        """Level, message and values for ``/diagnostics`` (sets :attr:`done`)."""
+        """Level, message and values for ``/diagnostics`` (sets :attr:`done`; :func:`~jointfit_ros.joint_diagnostics.joint_status`)."""
         self.done = False
-        est = self.estimator
-        values: dict[str, Any] = {
-            "type": self.cfg.type,
-            "frozen": est.frozen,
-            "frames in window": est.n_window,
-            "frames received": self.counters["frames"],
-            "input rate (Hz)": round(self.input_rate(), 1),
-            "outputs": self.counters["outputs"],
-            "malformed frames": self.counters["malformed"],
-            "unmatched inputs": self.counters["unmatched"],
-            "estimate failures": self.counters["estimate_failures"],
-            "outputs withheld (not identifiable)": self.counters["withheld_unidentified"],
-            "outputs withheld (hinge sign not chosen yet)": self.counters["withheld_unsigned"],
-            "absurd markers (treated as missing)": self.counters["absurd_markers"],
-            "outputs withheld (non-finite or beyond the workspace)": self.counters["absurd_outputs"],
-        }
-        if self.cfg.type == "hinge":
-            values["axis points"] = self.axis_words()
-        for reason, count in sorted(est.dropped.items()):
-            values[f"dropped: {reason}"] = count
-        for side, n in zip(("parent", "child", "joint"), (*est.gated_frames, est.joint_gated_frames), strict=True):
-            values[f"{side} gated (%)"] = round(100.0 * n / est.n_frames_seen, 2) if est.n_frames_seen else 0.0
-        if self.loaded_from:
-            values["calibration loaded from"] = self.loaded_from
-        if self.load_problem:
-            values["calibration not loaded"] = self.load_problem
-        sol = est.solution
-        waiting = est.status()
-        if sol is None:
-            msg = waiting or self.last_error or "collecting frames"
-            return Status(WARN if est.n_frames_seen else STALE, msg, values)
-        sigma_p, sigma_c = est.noise_std
-        serial = est.serial_inflation
-        if serial is not None:
-            values["residual lag-1 autocorrelation"] = round(serial.rho_raw, 4)
-            values["covariance inflation (correlation)"] = round(serial.factor, 3)
-        units = unit_problem(est.length_scale, self.node.units)
-        if units:
-            values["unit check"] = units
-        u = self.node.units
-        values[f"noise sd parent ({u})"] = sigma_p
-        values[f"noise sd child ({u})"] = sigma_c
-        values[f"rms residual ({u})"] = sol.rms
-        values["identifiable"] = sol.identifiable
-        if not est.frozen and est.n_window >= 3:
-            try:
-                sums = est.pose_sums()[0]
-                s = np.linalg.svd(np.asarray(sums.S) / sums.n, compute_uv=False)
-                values["relative rotation spread (deg)"] = [round(_spread_deg(1.0 - v), 1) for v in s]
-            except InputError:
-                pass
-        if isinstance(sol, PoseSumsCentre):
-            values[f"centre_parent ({u})"] = np.round(sol.centre_parent, 6).tolist()
-            values[f"centre sd ({u})"] = estimate_sd(sol)[0]
-        else:
-            values["direction_parent (unit vector)"] = np.round(sol.direction_parent, 6).tolist()
-            values[f"point_parent ({u})"] = np.round(sol.point_parent, 6).tolist()
-            values["direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
-            values[f"point sd ({u})"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
-        values.update(coverage_values(est, sol)[1])
-        values.update(_artefact_values(est, sol, u))
-        if sol.identifiable:
-            values.update(self.consistency.values(est, u))
-            if self.live_geometry is not None:
-                values.update(self.live_geometry.values(sol, u))
-        if self.cfg.target_sd > 0.0:
-            values[f"target sd ({u if isinstance(sol, PoseSumsCentre) else 'deg'})"] = self.cfg.target_sd
-        gated = gated_verdict(est.gated_frames, est.n_frames_seen, self.cfg.segment_names(), est.joint_gated_frames)
-        if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
-            return Status(WARN, gated, values)
-        if not sol.identifiable:
-            outputs = (
-                "per-frame outputs published with a widened covariance (publish_unidentified)"
-                if self.cfg.publish_unidentified
-                else "no per-frame output until it is"
-            )
-            return Status(WARN, f"not identifiable ({outputs}): {sol.reason}", values)
-        if units:
-            return Status(WARN, units, values)
-        if self.sign_problem:
-            return Status(WARN, f"hinge sign convention not honoured: {self.sign_problem}", values)
-        artefact = self.consistency.warning(est) if sol.identifiable else ""
-        if artefact:
-            return Status(WARN, artefact, values)
-        done, progress = done_check(sol, self.cfg.target_sd, self.node.units)
-        done = done and self._sign_fixed
-        self.done = done
-        if self.cfg.target_sd > 0.0:
-            values["done"] = done
-        message = "frozen" if est.frozen else "estimating"
-        if progress:
-            message += f"; {progress}"
-        if self.auto_note:
-            message += f"; {self.auto_note}"
-        if self.last_error and (self.counters["malformed"] or self.counters["estimate_failures"]):
-            return Status(OK, f"{message}; last problem: {self.last_error}", values)
-        return Status(OK, message, values)
+        st, self.done = joint_status(self)
+        return st
 
     # ------------------------------------------------------------------ done signal
 
@@ -1002,24 +868,4 @@ class JointRunner:
         stale_after = self.node.stale_after if stale_after is None else stale_after
         if self._activity is None:
             self._activity = InputActivity(stale_after)
-        self._activity.window_s = stale_after
-        est, c = self.estimator, self.counters
-        arrived = c["frames"] + c["malformed"] + c["unmatched"] + self._upstream_dropped
-        used = est.n_frames_seen - est.dropped.get("parent_not_posed", 0)
-        reasons = {
-            **est.dropped,
-            "malformed": c["malformed"],
-            "unmatched": c["unmatched"],
-            "dropped before this joint (see jointfit: input)": self._upstream_dropped,
-        }
-        act = self._activity.sample(now, arrived, used, reasons)
-        st = self.status()
-        values = dict(st.values)
-        if act.rate_hz is not None:
-            values["input rate (Hz)"] = round(act.rate_hz, 1)
-        if act.silent_s is not None and act.silent_s >= stale_after:
-            values["seconds without input"] = round(act.silent_s, 1)
-            return Status(STALE, f"no input for {act.silent_s:.1f} s (stale_after {stale_after:g} s); {st.message}", values)
-        if act.all_dropped and st.level != ERROR:
-            return Status(max(st.level, WARN) if st.level != STALE else WARN, f"{act.dropped_text()}; {st.message}", values)
-        return st if values == st.values else Status(st.level, st.message, values)
+        return live_status(self, self._activity, now, stale_after)

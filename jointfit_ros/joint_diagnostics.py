@@ -1,0 +1,265 @@
+"""One joint's state for ``/diagnostics``: the level, the one-line message and the key/values.
+
+Pure Python (no rclpy). :func:`joint_status` is :meth:`JointRunner.status
+<jointfit_ros.runner.JointRunner.status>`: it reads what the runner and its
+estimator hold (the counters, the drops and gated shares, the loaded
+calibration, the estimate with its noise, serial correlation, spread,
+coverage and soft-tissue part, the consistency across movement blocks and
+the live anatomy) and says, in order of precedence, what is wrong (a gate
+that held out much, an estimate not identifiable, a stream in the wrong unit,
+a sign convention not honoured, an inconsistent window) or how far the
+estimate is from done. :func:`live_status` is :meth:`JointRunner.live_status
+<jointfit_ros.runner.JointRunner.live_status>`: that status as of the wall
+clock (:class:`~jointfit_ros.activity.InputActivity`: stale input, every input
+dropped). It stands off a frame's path: the node calls it at each
+diagnostics tick.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jointfit_core.axis_sign import direction_sd_deg
+from jointfit_core.errors import InputError
+from jointfit_core.estimator import OnlineJoint
+from jointfit_core.gate import gated_verdict
+from jointfit_core.hinge_from_sums import PoseSumsAxis
+from jointfit_core.segments import PoseSumsCentre
+
+from .absurd_values import unit_problem
+from .activity import InputActivity
+from .progress import coverage_values, done_check, estimate_sd
+
+if TYPE_CHECKING:
+    from .runner import JointRunner
+
+__all__ = ["OK", "WARN", "ERROR", "STALE", "Status", "joint_status", "live_status"]
+
+FloatArray = NDArray[np.float64]
+
+#: diagnostic_msgs/DiagnosticStatus levels.
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class Status:
+    """A joint's state for ``/diagnostics``: level, one-line message and key/values."""
+
+    level: int
+    message: str
+    values: dict[str, Any]
+
+
+def _largest_sd(cov: FloatArray) -> float:
+    return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
+
+
+def _artefact_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: str) -> dict[str, Any]:
+    """The statistical and with-artefact parts of the estimate's sd, for /diagnostics (keys with units ``u``)."""
+    values: dict[str, Any] = {"attachment": "/".join(est.attachment)}
+    if "skin" in est.attachment:
+        values["movement in the window (s)"] = round(est.movement_seconds, 2)
+    stat = est.statistical_solution
+    if stat is None:
+        return values
+    values[f"artefact scale ({u}/rad)"] = est.artefact_scale
+    if isinstance(sol, PoseSumsCentre) and isinstance(stat, PoseSumsCentre):
+        values[f"statistical sd ({u})"] = _largest_sd(stat.cov_parent)
+        values[f"with-artefact sd ({u})"] = _largest_sd(sol.cov_parent)
+    elif isinstance(sol, PoseSumsAxis) and isinstance(stat, PoseSumsAxis):
+        values["statistical direction sd (deg)"] = round(direction_sd_deg(stat.cov_direction_parent), 3)
+        values["with-artefact direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
+        values[f"statistical point sd ({u})"] = _largest_sd(stat.cov_point_parent)
+        values[f"with-artefact point sd ({u})"] = _largest_sd(sol.cov_point_parent)
+    return values
+
+
+def _spread_deg(deficit: float) -> float:
+    return float(np.rad2deg(np.sqrt(2.0 * max(deficit, 0.0))))
+
+
+def joint_status(runner: JointRunner) -> tuple[Status, bool]:
+    """The joint's level, message and values for ``/diagnostics``, and whether it is done.
+
+    Parameters
+    ----------
+    runner : JointRunner
+        The joint (read only).
+
+    Returns
+    -------
+    status : Status
+        Values in the runner's input units ``u``; ``STALE`` before any frame,
+        ``WARN`` before an estimate or with a warning, else ``OK``.
+    done : bool
+        Identifiable, no warning, every sd at most ``target_sd`` and the hinge
+        sign chosen (:func:`~jointfit_ros.progress.done_check`).
+    """
+    est = runner.estimator
+    values = _input_values(runner)
+    sol = est.solution
+    if sol is None:
+        msg = est.status() or runner.last_error or "collecting frames"
+        return Status(WARN if est.n_frames_seen else STALE, msg, values), False
+    u = runner.node.units
+    units = unit_problem(est.length_scale, u)
+    values.update(_estimate_values(est, sol, u, units))
+    cfg = runner.cfg
+    if sol.identifiable:
+        values.update(runner.consistency.values(est, u))
+        if runner.live_geometry is not None:
+            values.update(runner.live_geometry.values(sol, u))
+    if cfg.target_sd > 0.0:
+        values[f"target sd ({u if isinstance(sol, PoseSumsCentre) else 'deg'})"] = cfg.target_sd
+    warning = _warning(runner, sol, units)
+    if warning:
+        return Status(WARN, warning, values), False
+    done, progress = done_check(sol, cfg.target_sd, u)
+    done = done and not runner.sign_pending
+    if cfg.target_sd > 0.0:
+        values["done"] = done
+    message = "frozen" if est.frozen else "estimating"
+    if progress:
+        message += f"; {progress}"
+    if runner.auto_note:
+        message += f"; {runner.auto_note}"
+    if runner.last_error and (runner.counters["malformed"] or runner.counters["estimate_failures"]):
+        return Status(OK, f"{message}; last problem: {runner.last_error}", values), done
+    return Status(OK, message, values), done
+
+
+def _input_values(runner: JointRunner) -> dict[str, Any]:
+    """What the joint received, dropped, gated and loaded (the values of every status)."""
+    est, c = runner.estimator, runner.counters
+    values: dict[str, Any] = {
+        "type": runner.cfg.type,
+        "frozen": est.frozen,
+        "frames in window": est.n_window,
+        "frames received": c["frames"],
+        "input rate (Hz)": round(runner.input_rate(), 1),
+        "outputs": c["outputs"],
+        "malformed frames": c["malformed"],
+        "unmatched inputs": c["unmatched"],
+        "estimate failures": c["estimate_failures"],
+        "outputs withheld (not identifiable)": c["withheld_unidentified"],
+        "outputs withheld (hinge sign not chosen yet)": c["withheld_unsigned"],
+        "absurd markers (treated as missing)": c["absurd_markers"],
+        "outputs withheld (non-finite or beyond the workspace)": c["absurd_outputs"],
+    }
+    if runner.cfg.type == "hinge":
+        values["axis points"] = runner.axis_words()
+    for reason, count in sorted(est.dropped.items()):
+        values[f"dropped: {reason}"] = count
+    for side, n in zip(("parent", "child", "joint"), (*est.gated_frames, est.joint_gated_frames), strict=True):
+        values[f"{side} gated (%)"] = round(100.0 * n / est.n_frames_seen, 2) if est.n_frames_seen else 0.0
+    if runner.loaded_from:
+        values["calibration loaded from"] = runner.loaded_from
+    if runner.load_problem:
+        values["calibration not loaded"] = runner.load_problem
+    return values
+
+
+def _estimate_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: str, units: str) -> dict[str, Any]:
+    """The estimate's values: noise, serial correlation, fit, spread, the estimate and its sd, coverage, artefact.
+
+    ``u``: the input units; ``units``: :func:`~jointfit_ros.absurd_values.unit_problem`'s verdict (a value when any).
+    """
+    values: dict[str, Any] = {}
+    sigma_p, sigma_c = est.noise_std
+    serial = est.serial_inflation
+    if serial is not None:
+        values["residual lag-1 autocorrelation"] = round(serial.rho_raw, 4)
+        values["covariance inflation (correlation)"] = round(serial.factor, 3)
+    if units:
+        values["unit check"] = units
+    values[f"noise sd parent ({u})"] = sigma_p
+    values[f"noise sd child ({u})"] = sigma_c
+    values[f"rms residual ({u})"] = sol.rms
+    values["identifiable"] = sol.identifiable
+    if not est.frozen and est.n_window >= 3:
+        try:
+            sums = est.pose_sums()[0]
+            s = np.linalg.svd(np.asarray(sums.S) / sums.n, compute_uv=False)
+            values["relative rotation spread (deg)"] = [round(_spread_deg(1.0 - v), 1) for v in s]
+        except InputError:
+            pass
+    if isinstance(sol, PoseSumsCentre):
+        values[f"centre_parent ({u})"] = np.round(sol.centre_parent, 6).tolist()
+        values[f"centre sd ({u})"] = estimate_sd(sol)[0]
+    else:
+        values["direction_parent (unit vector)"] = np.round(sol.direction_parent, 6).tolist()
+        values[f"point_parent ({u})"] = np.round(sol.point_parent, 6).tolist()
+        values["direction sd (deg)"] = round(direction_sd_deg(sol.cov_direction_parent), 3)
+        values[f"point sd ({u})"] = float(np.sqrt(max(np.linalg.eigvalsh(sol.cov_point_parent)[-1], 0.0)))
+    values.update(coverage_values(est, sol)[1])
+    values.update(_artefact_values(est, sol, u))
+    return values
+
+
+def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str) -> str:
+    """The status's warning, the first that applies in order of precedence (empty: none)."""
+    est, cfg = runner.estimator, runner.cfg
+    gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
+    if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
+        return gated
+    if not sol.identifiable:
+        outputs = (
+            "per-frame outputs published with a widened covariance (publish_unidentified)"
+            if cfg.publish_unidentified
+            else "no per-frame output until it is"
+        )
+        return f"not identifiable ({outputs}): {sol.reason}"
+    if units:
+        return units
+    if runner.sign_problem:
+        return f"hinge sign convention not honoured: {runner.sign_problem}"
+    return runner.consistency.warning(est) if sol.identifiable else ""
+
+
+def live_status(runner: JointRunner, activity: InputActivity, now: float, stale_after: float) -> Status:
+    """:func:`joint_status` as of ``now`` (seconds, monotonic), from the joint's input activity.
+
+    Parameters
+    ----------
+    runner : JointRunner
+        The joint (its ``status()`` is taken: sets its ``done``).
+    activity : InputActivity
+        The joint's; sampled here with the runner's totals.
+    now : float
+        Seconds (``time.monotonic()``).
+    stale_after : float
+        Seconds without input after which the level is STALE.
+
+    Returns
+    -------
+    Status
+        The rate over the recent ticks in the values; STALE after ``stale_after``
+        seconds without input; at least WARN when every input since the
+        previous call was dropped, with the reasons.
+    """
+    activity.window_s = stale_after
+    est, c = runner.estimator, runner.counters
+    upstream = runner._upstream_dropped
+    arrived = c["frames"] + c["malformed"] + c["unmatched"] + upstream
+    used = est.n_frames_seen - est.dropped.get("parent_not_posed", 0)
+    reasons = {
+        **est.dropped,
+        "malformed": c["malformed"],
+        "unmatched": c["unmatched"],
+        "dropped before this joint (see jointfit: input)": upstream,
+    }
+    act = activity.sample(now, arrived, used, reasons)
+    st = runner.status()
+    values = dict(st.values)
+    if act.rate_hz is not None:
+        values["input rate (Hz)"] = round(act.rate_hz, 1)
+    if act.silent_s is not None and act.silent_s >= stale_after:
+        values["seconds without input"] = round(act.silent_s, 1)
+        return Status(STALE, f"no input for {act.silent_s:.1f} s (stale_after {stale_after:g} s); {st.message}", values)
+    if act.all_dropped and st.level != ERROR:
+        return Status(max(st.level, WARN) if st.level != STALE else WARN, f"{act.dropped_text()}; {st.message}", values)
+    return st if values == st.values else Status(st.level, st.message, values)
