@@ -9,7 +9,9 @@ current parent pose, with its covariance. :meth:`OnlineJoint.estimate`
 solves the closed forms (:func:`~jointfit_core.segments.centre_from_pose_sums`,
 :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`) from the sums and
 widens their covariances by the frame-to-frame correlation of the joint
-residual (:mod:`jointfit_core.serial`).
+residual (:mod:`jointfit_core.serial`). Its block path (:meth:`OnlineJoint.update_many`)
+is :mod:`jointfit_core.joint_blocks`, its calibration file (:meth:`OnlineJoint.to_dict`,
+:meth:`OnlineJoint.from_dict`) :mod:`jointfit_core.joint_file`.
 """
 
 from __future__ import annotations
@@ -135,7 +137,7 @@ def _check_templates(
     ------
     InputError
         Not a pair, a template not (P >= 3, 3), non-finite or collinear, or
-        its count not ``n_markers``'; one template fixed without ``n_markers``.
+        its count not that of ``n_markers``; one template fixed without ``n_markers``.
     """
     fixed: list[FloatArray | None] = [None, None]
     if templates is not None:
