@@ -69,6 +69,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import math
+import struct
 import sys
 import time
 from collections.abc import Sequence
@@ -83,7 +84,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, save_results
 from skeleton import SOLVE_EVERY, T0, WARM, _commit, _Path  # type: ignore[attr-defined]
 
-from jointfit_core.artefact_sums import N_FEATURE_SUMS, feature_sums
+from jointfit_core.artefact_sums import N_FEATURE_SUMS
 from jointfit_core.estimator import GATE_REFRESH_FRAMES, GATE_SIGMA_FLOOR
 from jointfit_core.gate import GATE_HISTORY_FRAMES, GATE_JUMP_GAP_CAP, GATE_JUMP_LOW, GATE_JUMP_MADS, _aligned
 from jointfit_core.hinge_from_sums import PoseSumsAxis
@@ -139,6 +140,50 @@ KEEP = 1024  # frames kept at a compaction (> the longest lag's reach, 3.84 s at
 # the table of visible sets, per unit and pattern: xc_t (12), wn (4), n, xbar (3), xx, dof, W (36), posed
 _XC, _WN, _N, _XBAR, _XX, _DOF, _WU, _POSED = slice(0, 12), slice(12, 16), 16, slice(17, 20), 20, 21, slice(22, 58), 58
 _TABLE_WIDTH = 59
+#: The check's value-wise relative differences: of values above this share of the largest of their quantity.
+VALUE_FLOOR = 1e-15
+
+
+# the axis messages' rotation covariance: J's entries from the quaternion (x, y, z, w) (see encode)
+_PQ_I, _PQ_J = np.array([0, 2, 0, 2, 1, 0, 1, 0, 1]), np.array([1, 3, 0, 2, 2, 3, 1, 2, 3])
+_PRE_A, _PRE_B = np.array([0, 2, 4, 6, 0, 7]), np.array([1, 3, 5, 3, 1, 8])
+_PRE_SIGN = np.array([-1.0, 1.0, 1.0, 1.0, 1.0, -1.0])
+_J_OFF = np.array([0.0, -1.0, 0.0, 1.0, 0.0, 0.0])
+_J_MUL = np.array([-2.0, 2.0, -2.0, -2.0, 2.0, 2.0])
+_QD = np.array([7, 2, 3])  # Q21, Q02, Q10 of vec(Q)
+_QU = np.array([5, 6, 1])  # Q12, Q20, Q01
+_SQ_I, _SQ_J = np.array([0, 1, 2, 0, 0, 1]), np.array([0, 1, 2, 1, 2, 2])  # q^2, q0 q1, q0 q2, q1 q2
+_PAIR_I, _PAIR_J = np.triu_indices(9)
+_FEAT = _FS.start  # f (9), then Q f (81), t f (27), Q^T t f (27): one outer product of (Q, t, Q^T t) with f
+_FF = _FS.start + N_FEATURE_SUMS - 1
+_FM0 = _MOVE + 1  # skin hinges: f_a f_b (45), then f_a f_b Q (405)
+
+
+def _feature_sums_into(z: FloatArray, c: FloatArray, ball: BoolArray) -> None:
+    """:func:`~jointfit_core.artefact_sums.feature_sums` (with moments) of ``z`` (m, 3, 4) written into ``c`` (m, L_MAX).
+
+    The same features and products in fewer numpy calls; ``ball`` (m,) rows get no moments (zeros).
+    """
+    m = z.shape[0]
+    V = np.empty((m, 15))  # vec(Q), t, Q^T t
+    V[:, :9] = z[:, :, :3].reshape(m, 9)
+    V[:, 9:12] = z[:, :, 3]
+    V[:, 12:] = (np.swapaxes(z[:, :, :3], 1, 2) @ z[:, :, 3:])[:, :, 0]
+    Qf = V[:, :9]
+    tr = np.clip((Qf[:, 0] + Qf[:, 4] + Qf[:, 8] - 1.0) * 0.5, -1.0, 1.0)
+    theta = np.arccos(tr)
+    sin = np.sin(theta)
+    ratio = np.where(sin > 1e-9, theta / np.maximum(sin, 1e-9), 1.0)
+    f = c[:, _FEAT : _FEAT + 9]
+    np.multiply(0.5 * (Qf[:, _QD] - Qf[:, _QU]), ratio[:, None], out=f[:, :3])
+    np.multiply(f[:, _SQ_I], f[:, _SQ_J], out=f[:, 3:])
+    np.multiply(V[:, :, None], f[:, None, :], out=c[:, _FEAT + 9 : _FF].reshape(m, 15, 9))
+    c[:, _FF] = (f * f).sum(axis=1)
+    ff = c[:, _FM0 : _FM0 + 45]
+    np.multiply(f[:, _PAIR_I], f[:, _PAIR_J], out=ff)
+    np.multiply(ff[:, :, None], Qf[:, None, :], out=c[:, _FM0 + 45 : _FM0 + 450].reshape(m, 45, 9))
+    if ball.any():
+        c[ball, _FM0:] = 0.0
 
 
 class VectorSkeleton:
@@ -182,7 +227,7 @@ class VectorSkeleton:
         self._init_joints()
         self.frame_no = self.est[0]._arrivals
         self.gate_block = -1
-        self.flags = {"gate_slow": 0, "joint_slow": 0, "absurd_slow": 0, "lag_slow": 0, "aligned": 0, "jump_last": 0}
+        self.flags = {"gate_slow": 0, "joint_slow": 0, "absurd_slow": 0, "aligned": 0, "jump_last": 0}
         self.last: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ state copied from the current path
@@ -232,6 +277,11 @@ class VectorSkeleton:
         self.jump_limit = np.array([tr.jump_limits[0] for tr in self.trackers])
         self.jump_low = np.array([tr.jump_limits[1] for tr in self.trackers])
         self.scale = np.array([ABSURD_RADII * self.est[j].length_scale for j, _ in self.units])[:, None]
+        self.owner = np.array([j for j, _ in self.units])
+        self.side = np.array([side for _, side in self.units])
+        self.unit_floor = np.array([GATE_SIGMA_FLOOR * self.est[j].length_scale for j, _ in self.units])
+        self.unit_gate = np.array([self.est[j].gate for j, _ in self.units])
+        self.unit_sigma = np.array([self.est[j]._sigma[side] for j, side in self.units])
 
     def _init_joints(self) -> None:
         J = self.J
@@ -275,6 +325,15 @@ class VectorSkeleton:
                 self.E[j, pos[t]] = True
                 self.ZH[j, pos[t]] = z
             self.last_time[j] = h._t[h._n - 1] if h._n else np.nan
+        self._index_history()
+        self.c_buf = np.zeros((J, L_MAX))
+        self.c_buf[:, 0] = 1.0
+        self.ball_rows = ~self.hinge
+        self.hinge_rows = np.flatnonzero(self.hinge)
+        self.msg_floats = np.zeros((J, 43))  # one PoseWithCovariance per joint: position, xyzw, 6 x 6 cov
+        self.msg_floats[:, 6] = 1.0
+        self.msg_floats[:, 7:].reshape(J, 6, 6)[:, [3, 4, 5], [3, 4, 5]] = UNKNOWN_ROTATION_VARIANCE
+        self.seg_floats = np.zeros((self.K, 7))
         # the joint test
         tracks = [e._joint for e in self.est]
         self.jz_ref = np.stack([t.z_ref for t in tracks]).copy()
@@ -296,6 +355,7 @@ class VectorSkeleton:
         self.res_u = np.zeros((J, 3))
         self.res_v = np.zeros((J, 3))
         self.res_len = np.zeros(J)
+        self.res_bv = np.zeros((J, 3, 2))
         self.has_sol = np.zeros(J, dtype=bool)
         self.publish = np.zeros(J, dtype=bool)
         self.o_local = np.zeros((J, 3))
@@ -320,6 +380,8 @@ class VectorSkeleton:
         e = self.est[j]
         sol = e.solution
         self.refresh[j] = True
+        if hasattr(self, "unit_sigma"):
+            self.unit_sigma[self.owner == j] = np.array(e._sigma)[self.side[self.owner == j]]
         length = e.length_scale
         if sol is None or not sol.identifiable or not (math.isfinite(length) and length > 0.0):
             self.has_res[j], self.jlimit[j] = False, np.inf
@@ -328,6 +390,7 @@ class VectorSkeleton:
             self.has_res[j] = True
             self.res_a[j], self.res_b[j], self.res_u[j], self.res_v[j] = res.a, res.b, res.u, res.v
             self.res_len[j] = res.length if res.kind == "hinge" else 0.0
+            self.res_bv[j] = np.stack([res.b, res.v], axis=1)
             self.je_ref[j] = self._residuals(self.jz_ref[j], j)
             if copy_joint_test:
                 self.jlimit[j] = e._joint.limit
@@ -363,11 +426,12 @@ class VectorSkeleton:
     def _residuals(self, z: FloatArray, j: Any) -> FloatArray:
         """Joint residuals (..., 6) of relative poses ``z`` (..., 3, 4) of joints ``j`` (ball: turn part zero)."""
         Q, t = z[..., :3], z[..., 3]
-        carried = np.einsum("...ij,...j->...i", Q, self.res_b[j]) + t - self.res_a[j]
+        Qbv = Q @ self.res_bv[j]
+        carried = Qbv[..., 0] + t - self.res_a[j]
         u = self.res_u[j]
         out = np.empty((*z.shape[:-2], 6))
-        out[..., 3:] = carried - np.einsum("...i,...i->...", carried, u)[..., None] * u
-        out[..., :3] = self.res_len[j][..., None] * (np.einsum("...ij,...j->...i", Q, self.res_v[j]) - u)
+        out[..., 3:] = carried - (carried * u).sum(axis=-1)[..., None] * u
+        out[..., :3] = self.res_len[j][..., None] * (Qbv[..., 1] - u)
         return out
 
     # ------------------------------------------------------------------ the per-frame stages
@@ -381,10 +445,8 @@ class VectorSkeleton:
     def fill(self, frame: FloatArray) -> None:
         """(a) every unit's markers, its missing pattern, the absurd-marker extent test."""
         Y = frame[self.rows]  # (K, P, 3)
-        with np.errstate(invalid="ignore"):
-            spread = np.fmax.reduce(Y, axis=1) - np.fmin.reduce(Y, axis=1)
-            compact = bool((spread <= self.scale).all())
-        if not compact:
+        spread = np.fmax.reduce(Y, axis=1) - np.fmin.reduce(Y, axis=1)  # (quiet NaNs: no warnings)
+        if not (spread <= self.scale).all():
             self.flags["absurd_slow"] += 1
         missing = np.isnan(Y[:, :, 0])
         code = (~missing) @ _BITS
@@ -403,6 +465,7 @@ class VectorSkeleton:
         N = (S.reshape(K, 9) @ HORN_A.T).reshape(K, 4, 4)
         lam, V = _eigh(N)
         q = V[:, :, 3]
+        self.q = q
         R = ((q[:, :, None] * q[:, None, :]).reshape(K, 16) @ HORN_B.T).reshape(K, 3, 3)
         d = ybar - (R @ G[:, _XBAR, None])[:, :, 0]
         yy = (Y * Y).sum(axis=(1, 2)) - G[:, _N] * (ybar * ybar).sum(axis=1)
@@ -411,33 +474,42 @@ class VectorSkeleton:
         self.posed = G[:, _POSED] > 0.0
 
     def _refresh_limits(self) -> None:
-        """The gate's limits of the units of the joints due (per ``GATE_REFRESH_FRAMES`` frames and after an estimate)."""
+        """The gate's limits of the units of the joints due (per ``GATE_REFRESH_FRAMES`` frames and after an estimate).
+
+        ``OnlineJoint._gate_var``: the residual level ``(gate s)^2`` from the window's pooled pose-fit
+        residual, the jump limits from the recent jumps' median and MAD (all units at once; the due
+        ones take them).
+        """
         block = self.frame_no // GATE_REFRESH_FRAMES
         if block != self.gate_block:
             self.gate_block = block
             self.refresh[:] = True
-        if not self.refresh.any():
+        due = self.refresh[self.owner]
+        if not due.any():
             return
-        for k, (j, side) in enumerate(self.units):
-            if not self.refresh[j]:
-                continue
-            e = self.est[j]
-            ss, dof = self.sums[j, _SS + 2 * side], self.sums[j, _SS + 2 * side + 1]
-            sigma = math.sqrt(max(ss, 0.0) / dof) if dof > 0.0 else e._sigma[side]
-            floor = GATE_SIGMA_FLOOR * e.length_scale
-            s = max(sigma, floor)
-            var = (e.gate * s) ** 2
-            n = int(self.hist_n[k])
-            if n == 0:
-                normal = 6.0 * max(s, floor) ** 2
-            else:
-                a = np.sqrt(self.hist[k, :n])
-                med = float(np.median(a))
-                spread = 1.4826 * float(np.median(np.abs(a - med)))
-                normal = max((med + GATE_JUMP_MADS * spread) ** 2, 6.0 * floor**2)
-            self.res_limit[k] = var
-            self.jump_limit[k] = e.gate**2 * normal
-            self.jump_low[k] = GATE_JUMP_LOW * normal
+        ss = self.sums[self.owner, _SS + 2 * self.side]
+        dof = self.sums[self.owner, _SS + 2 * self.side + 1]
+        sigma = np.where(dof > 0.0, np.sqrt(np.maximum(ss, 0.0) / np.where(dof > 0.0, dof, 1.0)), self.unit_sigma)
+        s = np.maximum(sigma, self.unit_floor)
+        if (self.hist_n == GATE_HISTORY_FRAMES).all():
+            a = np.sqrt(self.hist)
+            med = np.median(a, axis=1)
+            spread = 1.4826 * np.median(np.abs(a - med[:, None]), axis=1)
+            normal = np.maximum((med + GATE_JUMP_MADS * spread) ** 2, 6.0 * self.unit_floor**2)
+        else:  # (a history not yet full: unit by unit)
+            normal = np.empty(self.K)
+            for k in range(self.K):
+                n = int(self.hist_n[k])
+                if n == 0:
+                    normal[k] = 6.0 * max(s[k], self.unit_floor[k]) ** 2
+                    continue
+                a1 = np.sqrt(self.hist[k, :n])
+                m1 = float(np.median(a1))
+                sp = 1.4826 * float(np.median(np.abs(a1 - m1)))
+                normal[k] = max((m1 + GATE_JUMP_MADS * sp) ** 2, 6.0 * self.unit_floor[k] ** 2)
+        np.copyto(self.res_limit, (self.unit_gate * s) ** 2, where=due)
+        np.copyto(self.jump_limit, self.unit_gate**2 * normal, where=due)
+        np.copyto(self.jump_low, GATE_JUMP_LOW * normal, where=due)
         self.refresh[:] = False
 
     def _jumps(self, local: FloatArray, vis: BoolArray, ref: FloatArray, at: IntArray, rcode: IntArray) -> tuple[FloatArray, BoolArray]:
@@ -478,19 +550,18 @@ class VectorSkeleton:
             self.flags["gate_slow"] += int(slow.sum())
         ok = posed & ~slow
         # passed: turn and shape references, jump history; seen: the previous frame's markers
-        self.ref_R[ok] = R[ok]
+        np.copyto(self.ref_R, R, where=ok[:, None, None])
         self.ref_ok |= ok
-        self.ref_frame[ok] = self.frame_no
-        self.held[ok] = 0
+        np.copyto(self.ref_frame, self.frame_no, where=ok)
+        np.copyto(self.held, 0, where=ok)
         take = vis & ok[:, None]
-        self.ref[take] = local[take]
-        self.at[take] = self.frame_no
-        codes = np.broadcast_to(self.code[:, None], take.shape)
-        self.code_ref[take] = codes[take]
-        seen = vis & posed[:, None]
-        self.last_local[seen] = local[seen]
-        self.last_at[seen] = self.frame_no
-        self.last_code[seen] = codes[seen]
+        np.copyto(self.ref, local, where=take[:, :, None])
+        np.copyto(self.at, self.frame_no, where=take)
+        code = self.code[:, None]
+        np.copyto(self.code_ref, code, where=take)
+        np.copyto(self.last_local, local, where=vis[:, :, None])  # (vis: posed units' visible markers)
+        np.copyto(self.last_at, self.frame_no, where=vis)
+        np.copyto(self.last_code, code, where=vis)
         keep = np.flatnonzero(ok & ~inf)
         self.hist[keep, self.hist_pos[keep]] = jump[keep]
         self.hist_pos[keep] = (self.hist_pos[keep] + 1) % GATE_HISTORY_FRAMES
@@ -499,10 +570,11 @@ class VectorSkeleton:
     def joint(self) -> None:
         """(d) all relative poses ``[Q | t]`` in one matmul; the joint test's scores and references."""
         R, d, jp, jc = self.R, self.d, self.jp, self.jc
-        Rp_t = np.swapaxes(R[jp], 1, 2)
+        self.Rp, self.Rc, self.dp, self.dc = Rp, Rc, dp, dc = R[jp], R[jc], d[jp], d[jc]
+        self.Rp_t = Rp_t = np.swapaxes(Rp, 1, 2)
         z = np.empty((self.J, 3, 4))
-        np.matmul(Rp_t, R[jc], out=z[:, :, :3])
-        z[:, :, 3] = (Rp_t @ (d[jc] - d[jp])[:, :, None])[:, :, 0]
+        np.matmul(Rp_t, Rc, out=z[:, :, :3])
+        np.matmul(Rp_t, (dc - dp)[:, :, None], out=z[:, :, 3:])
         self.z = z
         both = self.posed[jp] & self.posed[jc]
         slow = self.slow_units[jp] | self.slow_units[jc]
@@ -510,7 +582,8 @@ class VectorSkeleton:
         e = self._residuals(z, self.jidx)
         gap = self.frame_no - self.jref_frame  # (J, 2)
         ok = (self.jref_frame > 0) & (gap <= GATE_JUMP_GAP_CAP)
-        dist = np.sqrt(np.einsum("jbi,jbi->jb", e[:, None] - self.je_ref, e[:, None] - self.je_ref))
+        de = e[:, None] - self.je_ref
+        dist = np.sqrt((de * de).sum(axis=2))
         score = np.where(ok, dist / np.sqrt(np.maximum(gap - np.arange(2), 1)), np.inf).min(axis=1)
         fails = test & np.isfinite(score) & (score > self.jlimit)  # (no reference: passes)
         if fails.any():
@@ -518,93 +591,115 @@ class VectorSkeleton:
         passed = test & ~fails
         self.enter = both & ~slow & ~fails
         # pass_one of the joints tested
-        self.jz_ref[passed, 1], self.jref_frame[passed, 1], self.je_ref[passed, 1] = (
-            self.jz_ref[passed, 0], self.jref_frame[passed, 0], self.je_ref[passed, 0])  # fmt: skip
-        self.jz_ref[passed, 0], self.jref_frame[passed, 0], self.je_ref[passed, 0] = z[passed], self.frame_no, e[passed]
+        if passed.all():
+            self.jz_ref[:, 1], self.jref_frame[:, 1], self.je_ref[:, 1] = self.jz_ref[:, 0], self.jref_frame[:, 0], self.je_ref[:, 0]
+            self.jz_ref[:, 0], self.jref_frame[:, 0], self.je_ref[:, 0] = z, self.frame_no, e
+        else:
+            self.jz_ref[passed, 1], self.jref_frame[passed, 1], self.je_ref[passed, 1] = (
+                self.jz_ref[passed, 0], self.jref_frame[passed, 0], self.je_ref[passed, 0])  # fmt: skip
+            self.jz_ref[passed, 0], self.jref_frame[passed, 0], self.je_ref[passed, 0] = z[passed], self.frame_no, e[passed]
         keep = np.flatnonzero(passed & np.isfinite(score))
         self.jscores[keep, self.jscores_pos[keep]] = score[keep]
         self.jscores_pos[keep] = (self.jscores_pos[keep] + 1) % GATE_HISTORY_FRAMES
         self.jscores_n[keep] = np.minimum(self.jscores_n[keep] + 1, GATE_HISTORY_FRAMES)
 
-    def _lag_rows(self, time: float) -> tuple[IntArray, BoolArray]:
-        """Per joint and lag the history row paired with this frame, and whether the pair is taken."""
+    def _lag_rows(self, time: float, je: Any) -> tuple[IntArray, BoolArray]:
+        """Per entering joint and lag, the history row paired with this frame (the nearest frame it entered) and whether taken.
+
+        :meth:`LagHistory.contribution_one <jointfit_core.serial.LagHistory.contribution_one>`'s search
+        over each joint's own frames, vectorised: ``rank[j, i]`` counts the frames joint ``j``
+        entered up to row ``i`` and ``rows_of[j, r]`` is the row of its ``r``-th, so the frames
+        before and after a target are two gathers.
+        """
         n = self.nT
-        T = self.T[:n]
-        target = time - _LAGS
-        p = np.clip(np.searchsorted(T, target, side="right") - 1, 0, max(n - 1, 0))
-        nxt = np.minimum(p + 1, max(n - 1, 0))
-        p = np.where((p + 1 < n) & (np.abs(T[nxt] - target) < np.abs(T[p] - target)), nxt, p)
-        rows = np.broadcast_to(p, (self.J, N_LAGS)).copy()
-        miss = ~self.E[:, p] & self.enter[:, None]
-        if miss.any():  # the shared row did not enter this joint: its own search (rare)
-            for j, lag in zip(*np.nonzero(miss), strict=True):
-                self.flags["lag_slow"] += 1
-                own = np.flatnonzero(self.E[j, :n])
-                Tj = T[own]
-                q = min(max(int(np.searchsorted(Tj, target[lag], side="right")) - 1, 0), own.size - 1)
-                if q + 1 < own.size and abs(Tj[q + 1] - target[lag]) < abs(Tj[q] - target[lag]):
-                    q += 1
-                rows[j, lag] = own[q]
-        gap = time - T[rows]
-        ok = np.abs(gap - _LAGS) <= LAG_TOLERANCE * _LAGS
-        return rows, ok
+        target = time - _LAGS  # (L,)
+        le = np.searchsorted(self.T[:n], target, side="right") - 1  # the last row at or before each target
+        r = np.where(le >= 0, self.rank[self.jidx[je][:, None], np.maximum(le, 0)], 0)  # (m, L) entered up to there
+        tot = self.tot[je][:, None]
+        a = np.maximum(r - 1, 0)
+        b = np.minimum(a + 1, np.maximum(tot - 1, 0))
+        rows_j = self.jidx[je][:, None]
+        ra = self.rows_of[rows_j, a]
+        rb = self.rows_of[rows_j, b]
+        later = (a + 1 < tot) & (np.abs(self.T[rb] - target) < np.abs(self.T[ra] - target))
+        rows = np.where(later, rb, ra)
+        gap = time - self.T[rows]
+        return rows, np.abs(gap - _LAGS) <= LAG_TOLERANCE * _LAGS
 
     def sums_update(self, time: float) -> None:
         """(e) every entering joint's contribution vector and its window's add, subtract and shadow rebuild."""
         enter = self.enter
-        je = np.flatnonzero(enter)
-        m = je.size
+        every = bool(enter.all())
+        je: Any = slice(None) if every else np.flatnonzero(enter)
         if self.nT == HISTORY:
             self._compact_history()
         z = self.z[je]
+        m = z.shape[0]
         zf = z.reshape(m, 12)
-        c = np.zeros((m, L_MAX))
-        c[:, 0] = 1.0
+        c = self.c_buf[:m]
         c[:, 1:13] = zf
-        c[:, _ZZ] = (zf[:, :, None] * zf[:, None, :]).reshape(m, 144)
+        np.multiply(zf[:, :, None], zf[:, None, :], out=c[:, _ZZ].reshape(m, 12, 12))
         G = self.G
-        c[:, _W] = np.concatenate([G[self.jp[je], _WU], G[self.jc[je], _WU]], axis=1)
-        c[:, _SS] = self.ss[self.jp[je]]
-        c[:, _SS + 1] = G[self.jp[je], _DOF]
-        c[:, _SS + 2] = self.ss[self.jc[je]]
-        c[:, _SS + 3] = G[self.jc[je], _DOF]
+        jp, jc = self.jp[je], self.jc[je]
+        c[:, _W] = np.concatenate([G[jp, _WU], G[jc, _WU]], axis=1)
+        c[:, _SS : _SS + 4] = np.stack([self.ss[jp], G[jp, _DOF], self.ss[jc], G[jc, _DOF]], axis=1)
         ch = self.chained[je]
         zp = self.z_prev[je]
-        c[:, _LAG] = ch
-        c[:, _LAG + 1 : _LAG + 13] = np.where(ch[:, None], (z + zp).reshape(m, 12), 0.0)
-        c[:, _LAG + 13 : _LAG + 29] = np.where(ch[:, None], (np.swapaxes(z, 1, 2) @ zp).reshape(m, 16), 0.0)
-        fs = feature_sums(z[:, :, :3], z[:, :, 3], True)
-        c[:, _FS] = fs[:, :N_FEATURE_SUMS]
-        hinge = self.hinge[je]
-        c[:, _MOVE + 1 :] = np.where(hinge[:, None], fs[:, N_FEATURE_SUMS:], 0.0)
+        lag1 = c[:, _LAG : _LAG + 29]
+        if ch.all():
+            lag1[:, 0] = 1.0
+            np.add(z, zp, out=lag1[:, 1:13].reshape(m, 3, 4))
+            np.matmul(np.swapaxes(z, 1, 2), zp, out=lag1[:, 13:29].reshape(m, 4, 4))
+        else:
+            lag1[:, 0] = ch
+            lag1[:, 1:13] = np.where(ch[:, None], (z + zp).reshape(m, 12), 0.0)
+            lag1[:, 13:29] = np.where(ch[:, None], (np.swapaxes(z, 1, 2) @ zp).reshape(m, 16), 0.0)
+        _feature_sums_into(z, c, self.ball_rows[je])
         # the pairs at lags in seconds
-        rows, ok = self._lag_rows(time)
-        rows, ok = rows[je], ok[je]
-        has = np.isfinite(self.last_time[je])
+        rows, ok = self._lag_rows(time, je)
+        has = self.tot[je] > 0
         tl = c[:, _TL]
         tl[:, 0] = has
         tl[:, 1] = np.where(has, time - self.last_time[je], 0.0)
-        prev = self.ZH[je[:, None], rows].reshape(m, N_LAGS, 3, 4)
+        prev = self.ZH[self.jidx[je][:, None], rows].reshape(m, N_LAGS, 3, 4)
         blocks = tl[:, 2:].reshape(m, N_LAGS, 30)
         okh = ok & has[:, None]
         blocks[:, :, 0] = okh
-        blocks[:, :, 1:13] = np.where(okh[:, :, None], (prev + z[:, None]).reshape(m, N_LAGS, 12), 0.0)
-        blocks[:, :, 13:29] = np.where(okh[:, :, None], (np.swapaxes(z, 1, 2)[:, None] @ prev).reshape(m, N_LAGS, 16), 0.0)
-        blocks[:, :, 29] = np.where(okh, time - self.T[rows], 0.0)
+        blocks[:, :, 1:13] = (prev + z[:, None]).reshape(m, N_LAGS, 12)
+        blocks[:, :, 13:29] = (np.swapaxes(z, 1, 2)[:, None] @ prev).reshape(m, N_LAGS, 16)
+        blocks[:, :, 29] = time - self.T[rows]
+        if not okh.all():
+            blocks[~okh] = 0.0
         c[:, _TL] = tl
         node = tl[:, _MOVE_AT : _MOVE_AT + 30]
         moved = (node[:, 0] > 0.0) & (node[:, 13] + node[:, 18] + node[:, 23] < _MOVE_TRACE_MIN)
         c[:, _MOVE] = np.where(moved, np.minimum(tl[:, 1], _MOVE_GAP_MAX), 0.0)
         self.c = c
-        self._push(je, c)
+        self._push(je, c, every)
         # the lag history and the lag-1 chain
-        self.T[self.nT] = time
-        self.E[:, self.nT] = enter
-        self.ZH[je, self.nT] = zf
-        self.nT += 1
+        n = self.nT
+        self.T[n] = time
+        self.E[:, n] = enter
+        self.ZH[je, n] = zf
+        self.rank[:, n] = (self.rank[:, n - 1] if n else 0) + enter
+        tot = self.tot[je]
+        self.rows_of[self.jidx[je], tot] = n
+        self.tot[je] = tot + 1
+        self.nT = n + 1
         self.last_time[je] = time
         self.z_prev[je] = z
         self.chained = enter.copy()
+
+    def _index_history(self) -> None:
+        """``rank``, ``rows_of`` and ``tot`` of the lag history (at the start and after a compaction)."""
+        n = self.nT
+        self.rank = np.zeros((self.J, HISTORY), dtype=np.int64)
+        self.rank[:, :n] = np.cumsum(self.E[:, :n], axis=1)
+        self.rows_of = np.zeros((self.J, HISTORY), dtype=np.int64)
+        self.tot = self.E[:, :n].sum(axis=1)
+        for j in range(self.J):
+            own = np.flatnonzero(self.E[j, :n])
+            self.rows_of[j, : own.size] = own
 
     def _compact_history(self) -> None:
         keep = slice(self.nT - KEEP, self.nT)
@@ -612,42 +707,45 @@ class VectorSkeleton:
         self.E[:, :KEEP] = self.E[:, keep].copy()
         self.ZH[:, :KEEP] = self.ZH[:, keep].copy()
         self.nT = KEEP
+        self._index_history()
 
-    def _push(self, je: IntArray, c: FloatArray) -> None:
+    def _push(self, je: Any, c: FloatArray, every: bool) -> None:
         """:meth:`SlidingSums._push_contrib <jointfit_core.stats.SlidingSums._push_contrib>` of the joints ``je``, stacked."""
         cap = self.cap
         lo, hi = self.lo[je], self.hi[je]
         leave = hi - lo >= self.frames_max[je]
+        rows = self.jidx[je]
+        sums = self.sums[je] if not every else self.sums
+        shadow = self.shadow[je] if not every else self.shadow
+        sums += c
+        shadow += c
         new_lo = lo + leave
-        old = self.rec[je, lo % cap]
-        sums = self.sums[je] + c
-        np.subtract(sums, old, out=sums, where=leave[:, None])
-        self.sums[je] = sums
-        shadow = self.shadow[je] + c
-        inside = leave & ((lo < self.sh_next[je]) | (lo >= self.sh_end[je]))
-        np.subtract(shadow, old, out=shadow, where=inside[:, None])
         nxt = np.maximum(self.sh_next[je], new_lo)
+        if leave.any():
+            old = self.rec[rows, lo % cap]
+            np.subtract(sums, old, out=sums, where=leave[:, None])
+            inside = leave & ((lo < self.sh_next[je]) | (lo >= self.sh_end[je]))
+            np.subtract(shadow, old, out=shadow, where=inside[:, None])
         more = nxt < self.sh_end[je]
-        shadow += np.where(more[:, None], self.rec[je, nxt % cap], 0.0)
+        np.add(shadow, self.rec[rows, nxt % cap], out=shadow, where=more[:, None])
         nxt = nxt + more
-        self.rec[je, hi % cap] = c
+        self.rec[rows, hi % cap] = c
         self.lo[je], self.hi[je] = new_lo, hi + 1
         done = nxt >= self.sh_end[je]
         if done.any():  # the rebuilt sums replace the live ones; a new rebuild starts
-            jd = je[done]
-            self.sums[jd] = shadow[done]
+            sums[done] = shadow[done]
             shadow[done] = 0.0
-            nxt[done] = self.lo[jd]
-            self.sh_end[jd] = self.hi[jd]
-        self.shadow[je] = shadow
+            nxt[done] = new_lo[done]
+            self.sh_end[rows[done]] = hi[done] + 1
+        if not every:
+            self.sums[je], self.shadow[je] = sums, shadow
         self.sh_next[je] = nxt
 
     def outputs(self) -> None:
         """(f) every joint's world output of this frame, and which go out."""
-        R, d, jp, jc = self.R, self.d, self.jp, self.jc
-        Rp, Rc, dp, dc = R[jp], R[jc], d[jp], d[jc]
+        jp, jc = self.jp, self.jc
+        Rp, Rc, dp, dc, Rp_t = self.Rp, self.Rc, self.dp, self.dc, self.Rp_t
         cp = self.code[jp]
-        Rp_t = np.swapaxes(Rp, 1, 2)
         position = (Rp @ self.o_local[:, :, None])[:, :, 0] + dp
         cov = Rp @ self.o_cov[self.jidx, cp] @ Rp_t
         direction = (Rp @ self.o_dir_p[:, :, None])[:, :, 0]
@@ -665,42 +763,46 @@ class VectorSkeleton:
         self.out = (position, cov, direction, cov_dir, residual, Q, Q_cov)
 
     def encode(self, stamp_ns: int) -> list[bytes]:
-        """(g) the joints' output messages in one buffer, then ``~/segments``."""
+        """(g) the joints' output messages in one (J, bytes) buffer, then ``~/segments`` (PoseArray of the units' poses)."""
         position, cov, direction, cov_dir, _, _, _ = self.out
-        J = self.J
         header = _cdr_header(stamp_ns, "world", "<")
         header += bytes((-(len(header) - 4)) % 8)
-        F = np.zeros((J, 43))
+        F = self.msg_floats
         F[:, :3] = position
-        F[:, 6] = 1.0
-        c6 = F[:, 7:].reshape(J, 6, 6)
+        c6 = F[:, 7:].reshape(self.J, 6, 6)
         c6[:, :3, :3] = cov
-        c6[:, 3, 3] = c6[:, 4, 4] = c6[:, 5, 5] = UNKNOWN_ROTATION_VARIANCE
-        h = np.flatnonzero(self.hinge)
+        h = self.hinge_rows
         if h.size:
-            u = direction[h] / np.sqrt(np.einsum("ji,ji->j", direction[h], direction[h]))[:, None]
-            dx, dy, dz = u[:, 0], u[:, 1], u[:, 2]
+            u = direction[h] / np.sqrt((direction[h] * direction[h]).sum(axis=1))[:, None]
+            dx, dy, dz = u.T
             w = np.where(dz >= 0.0, 1.0 + dz, (dx * dx + dy * dy) / (1.0 - dz))
             q = np.stack([-dy, dx, np.zeros_like(dx), w], axis=1)
-            q = q / np.sqrt(np.einsum("ji,ji->j", q, q))[:, None]
-            qq = q / np.sqrt(np.einsum("ji,ji->j", q, q))[:, None]
-            x, y, zq, ww = qq.T
-            Jm = np.stack([np.stack([-2 * (x * y - zq * ww), -(1 - 2 * (x * x + zq * zq)), -2 * (y * zq + x * ww)], 1),
-                           np.stack([1 - 2 * (y * y + zq * zq), 2 * (x * y + zq * ww), 2 * (x * zq - y * ww)], 1)], 2)
-            rot = np.swapaxes(Jm, 1, 2) @ cov_dir[h] @ Jm
-            rot = 0.5 * (rot + np.swapaxes(rot, 1, 2))
-            c6[h, 3:5, 3:5] = rot
-            F[h, 3:7] = qq
+            q /= np.sqrt((q * q).sum(axis=1))[:, None]
+            q /= np.sqrt((q * q).sum(axis=1))[:, None]
+            # J = [-R[:, 1], R[:, 0]] of the quaternion's rotation R (conversions._axis_parts), as its entries
+            # -2 (xy - zw), -(1 - 2 (xx + zz)), -2 (yz + xw); 1 - 2 (yy + zz), 2 (xy + zw), 2 (xz - yw)
+            pq = q[:, _PQ_I] * q[:, _PQ_J]  # xy, zw, xx, zz, yz, xw, yy, xz, yw
+            pre = pq[:, _PRE_A] + _PRE_SIGN * pq[:, _PRE_B]
+            Jt = (_J_OFF + _J_MUL * pre).reshape(-1, 2, 3)  # J^T
+            rot = Jt @ cov_dir[h] @ np.swapaxes(Jt, 1, 2)
+            c6[h, 3:5, 3:5] = 0.5 * (rot + np.swapaxes(rot, 1, 2))
+            F[h, 3:7] = q
         width = len(header) + 43 * 8
-        buf = np.empty((J, width), dtype=np.uint8)
-        buf[:, : len(header)] = np.frombuffer(bytes(header), dtype=np.uint8)
-        buf[:, len(header) :] = F.view(np.uint8).reshape(J, 43 * 8)
+        buf = np.empty((self.J, width), dtype=np.uint8)
+        buf[:, : len(header)] = np.frombuffer(header, dtype=np.uint8)
+        buf[:, len(header) :] = F.view(np.uint8)
         blob = buf.tobytes()
         msgs = [blob[j * width : (j + 1) * width] for j in np.flatnonzero(self.out_mask).tolist()]
-        posed = self.posed
-        qs = np.zeros((self.K, 4))
-        qs[posed] = quaternions_from_matrices(self.R[posed])
-        self.segments_bytes = pose_array_bytes(T0, "world", np.where(posed[:, None], self.d, np.nan), orientations=qs)
+        # ~/segments: Horn's quaternion is the pose's (x, y, z, w after its scalar, w >= 0)
+        S = self.seg_floats
+        S[:, :3] = np.where(self.posed[:, None], self.d, np.nan)
+        S[:, 3:] = self.q[:, [1, 2, 3, 0]] * np.where(self.q[:, :1] < 0.0, -1.0, 1.0)
+        S[~self.posed, 3:] = 0.0
+        head = _cdr_header(T0, "world", "<")
+        head += bytes((-(len(head) - 4)) % 4)
+        head += struct.pack("<I", self.K)
+        head += bytes((-(len(head) - 4)) % 8)
+        self.segments_bytes = bytes(head) + S.tobytes()
         return msgs
 
     def step(self, raw: bytes) -> list[bytes]:
@@ -782,7 +884,7 @@ class _Diff:
         self.scale[name] = max(self.scale.get(name, 0.0), top)
         # each value's own relative difference (values above 1e-9 of the largest: exact zeros and rounding-level
         # entries, e.g. sums that cancel, have none)
-        big = both & (np.abs(a) > 1e-9 * top)
+        big = both & (np.abs(a) > VALUE_FLOOR * top)
         own = float(np.max(np.abs(a - b) / np.where(big, np.abs(a), 1.0), where=big, initial=0.0))
         self.own[name] = max(self.own.get(name, 0.0), own)
         self.count[name] = self.count.get(name, 0) + 1
@@ -814,6 +916,14 @@ def check(frames: int) -> tuple[_Diff, dict[str, int], int, int]:
                     if fp[2][side]:
                         diff.add("pose R", fp[0][side], vec.R[k])
                         diff.add("pose d", fp[1][side], vec.d[k])
+        posed = vec.posed
+        qs = np.zeros((vec.K, 4))
+        qs[posed] = quaternions_from_matrices(vec.R[posed])
+        ref_seg = pose_array_bytes(T0, "world", np.where(posed[:, None], vec.d, np.nan), orientations=qs)
+        if ref_seg[: -56 * vec.K] != vec.segments_bytes[: -56 * vec.K]:
+            raise RuntimeError(f"frame {f}: ~/segments headers differ")
+        diff.add("~/segments floats", np.frombuffer(ref_seg[-56 * vec.K :], "<f8"),
+                 np.frombuffer(vec.segments_bytes[-56 * vec.K :], "<f8"))  # fmt: skip
         got = {names[j]: i for i, j in enumerate(np.flatnonzero(vec.out_mask).tolist())}
         if sorted(got) != sorted(r.runner.cfg.name for r in routed):
             raise RuntimeError(f"frame {f}: outputs of {sorted(got)} against {sorted(r.runner.cfg.name for r in routed)}")
@@ -847,6 +957,8 @@ def check(frames: int) -> tuple[_Diff, dict[str, int], int, int]:
                 diff.add("window sums", sums, vec.sums[j, : sums.size])
                 stats = e._stats
                 diff.add("lag history Z", stats._history._z[stats._history._n - 1], vec.ZH[j, np.flatnonzero(vec.E[j, : vec.nT])[-1]])
+            for k, tr in enumerate(vec.trackers):
+                diff.add("gate limits", [tr.residual_limit, *tr.jump_limits], [vec.res_limit[k], vec.jump_limit[k], vec.jump_low[k]])
         if (f + 1) % SOLVE_EVERY == 0:
             path.runners[path.turn].estimate(force=True)
             vec.install(path.turn)
