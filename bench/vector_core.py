@@ -999,6 +999,31 @@ def calls_per_stage(vec: VectorSkeleton, messages: Sequence[bytes]) -> FloatArra
 
 
 
+def call_costs(n: int = 20000) -> dict[str, float]:
+    """CPU us of one numpy call of the prototype's kinds on its array sizes (J = 12, K = 14), this run."""
+    a, b, out = np.ones(3), np.ones(3), np.empty(3)
+    A, B = np.ones((14, 3, 3)), np.ones((14, 3, 3))
+    C, D = np.ones((12, 1070)), np.ones((12, 1070))
+    idx = np.arange(12)
+    M = np.random.default_rng(0).normal(size=(14, 4, 4))
+    N4 = M + np.swapaxes(M, 1, 2)  # (Horn's matrices are symmetric 4 x 4)
+    cases = {
+        "ufunc, 3 values, out=": lambda: np.add(a, b, out=out),
+        "matmul (14, 3, 3)": lambda: A @ B,
+        "einsum (14, 3, 3) -> (14,)": lambda: np.einsum("kij,kij->k", A, B),
+        "fancy gather (12 of 14, 3, 3)": lambda: A[idx],
+        "ufunc (12, 1070) in place": lambda: np.add(C, D, out=C),
+        "eigh (14, 4, 4)": lambda: _eigh(N4),
+    }
+    costs = {}
+    for name, fn in cases.items():
+        c0 = time.process_time()
+        for _ in range(n):
+            fn()
+        costs[name] = 1e6 * (time.process_time() - c0) / n
+    return costs
+
+
 def _baseline(router: MessageRouter, messages: Sequence[bytes]) -> float:
     c0 = time.process_time()
     for raw in messages:
@@ -1052,6 +1077,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             vecs[k].run(chunk, turns[k], acc)
             stage[k].append(acc / len(chunk))
     calls = calls_per_stage(vecs[12], extra[-200:])
+    costs = call_costs()
     base_us = 1e6 * float(np.median(base))
     med_cur = {k: 1e6 * float(np.median(cur[k])) for k in COUNTS}
     med_vec = {k: 1e6 * float(np.median(vec_cpu[k])) for k in COUNTS}
@@ -1086,6 +1112,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         f"Prototype slope over 1, 2, 6, 12 joints: {slope:.1f} us per joint, intercept {intercept:.0f} us. "
         f"12 joints with one unit per joint and side (exact mode, K = 24): {ex_us:.0f} us.",
+        "",
+        "CPU of one numpy call on this machine, this run (us): "
+        + "; ".join(f"{name}: {us:.2f}" for name, us in costs.items()) + ".",
         "",
         f"Slow-path flags over the {total_frames} frames per joint count (not implemented; counted): {flag_text}. "
         "`gate_slow`: units that would fail the outlier gate or its turn test; `joint_slow`: joints failing the "
