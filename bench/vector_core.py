@@ -49,11 +49,13 @@ The stream and joints of ``bench/skeleton.py`` (full skeleton, 56 markers, 0.5 m
 occluded, 100 Hz, PoseArray CDR bytes; joints: the first 1, 2, 6, 12 of ``config/full_body.yaml``).
 Each joint count gets a current ``_Path`` of ``bench/skeleton.py``, warmed up on ``WARM`` frames and
 solved, and a :class:`VectorSkeleton` built from it (templates, visible sets, gate and joint-test
-references, windows, lag histories, solutions copied). Rounds, interleaved: the parse baseline
-(:meth:`MessageRouter.frame`), then per joint count the current path (``_Path.run``, its whole
-per-message path incl. ``~/segments``), the prototype (parse + (a)-(g), timed as one), and the
-prototype again with ``process_time`` around each stage (the stages' split; the clock calls add
-~1 us per stage). Every ``SOLVE_EVERY`` frames one joint's estimate is installed in turn from the
+references, windows, lag histories, solutions copied). One continuous stream; each round has two
+chunks of frames. The first: the parse baseline (:meth:`MessageRouter.frame`), then per joint count
+the current path (``_Path.run``, its whole per-message path incl. ``~/segments``) and the
+prototype (parse + (a)-(g), timed as one). The second, the frames that follow: the baseline and
+the current paths again, and the prototypes with ``process_time`` around each stage (the stages'
+split; the clock calls add ~1 us per stage). The calls per stage are counted on the 12-joint
+prototype over the last ``CALL_FRAMES`` frames. Every ``SOLVE_EVERY`` frames one joint's estimate is installed in turn from the
 current path (solves run in the node's worker process; the prototype's per-estimate table rebuild
 is inside the timed span). CPU time is ``time.process_time``; the table gives median rounds.
 
@@ -128,6 +130,7 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results" / "vector_core.md"
 RATE = 100.0
 COUNTS = (1, 2, 6, 12)
+CALL_FRAMES = 200  # frames of the calls count
 STAGES = ("parse", "(a) fill", "(b) pose", "(c) gate", "(d) joint", "(e) sums", "(f) output", "(g) encode")
 P = 4  # markers per segment (every segment of the fake skeleton)
 PATTERNS = 1 << P
@@ -1045,9 +1048,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     commit = _commit()
     host = machine()
     diff, flags_check, bytes_same, bytes_total = check(check_frames)
-    # one stream: the rounds' frames, then as many again for the stages' pass (the prototypes' state runs on)
-    messages = _stream(WARM + 2 * per_round * rounds)
-    warm, timed, extra = messages[:WARM], messages[WARM : WARM + per_round * rounds], messages[WARM + per_round * rounds :]
+    # one continuous stream: per round a chunk timed whole and a chunk timed stage by stage (every path and
+    # prototype sees every frame, in order), then the frames of the calls count
+    messages = _stream(WARM + 2 * per_round * rounds + CALL_FRAMES)
+    warm = messages[:WARM]
     sk = make_skeleton("full", seed=0)
     configs = {k: node_config(skeleton_parameters(sk, sk.joints[:k])) for k in COUNTS}
     paths = {k: _Path(cfg, warm) for k, cfg in configs.items()}
@@ -1062,21 +1066,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     ex_cpu: list[float] = []
     stage: dict[int, list[FloatArray]] = {k: [] for k in COUNTS}
     for r in range(rounds):
-        chunk = timed[r * per_round : (r + 1) * per_round]
-        base.append(_baseline(router, chunk) / len(chunk))
+        start = WARM + 2 * r * per_round
+        whole, staged = messages[start : start + per_round], messages[start + per_round : start + 2 * per_round]
+        base.append(_baseline(router, whole) / per_round)
         for k in COUNTS:
-            cur[k].append(paths[k].run(chunk) / len(chunk))
-            # the prototype's state runs on: each round continues the stream (a fresh copy would rewind it)
-            vec_cpu[k].append(vecs[k].run(chunk, turns[k]) / len(chunk))
-        ex_cpu.append(exact12.run(chunk, turn_exact) / len(chunk))
-    # the stages' split: a second pass, over the frames that follow the rounds'
-    for r in range(rounds):
-        chunk = extra[r * per_round : (r + 1) * per_round]
+            cur[k].append(paths[k].run(whole) / per_round)
+            vec_cpu[k].append(vecs[k].run(whole, turns[k]) / per_round)
+        ex_cpu.append(exact12.run(whole, turn_exact) / per_round)
+        base.append(_baseline(router, staged) / per_round)
         for k in COUNTS:
+            cur[k].append(paths[k].run(staged) / per_round)
             acc = np.zeros(len(STAGES))
-            vecs[k].run(chunk, turns[k], acc)
-            stage[k].append(acc / len(chunk))
-    calls = calls_per_stage(vecs[12], extra[-200:])
+            vecs[k].run(staged, turns[k], acc)
+            stage[k].append(acc / per_round)
+        exact12.run(staged, turn_exact)
+    flags = {k: dict(vecs[k].flags) for k in COUNTS}  # (before the calls count)
+    calls = calls_per_stage(vecs[12], messages[-CALL_FRAMES:])
     costs = call_costs()
     base_us = 1e6 * float(np.median(base))
     med_cur = {k: 1e6 * float(np.median(cur[k])) for k in COUNTS}
@@ -1092,7 +1097,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows.append(["12: calls per frame", "", "", "", "", "", *(f"{x:.0f}" for x in calls), f"{calls.sum():.0f}"])
     slope, intercept = np.polyfit(np.array(COUNTS, dtype=float), [med_vec[k] for k in COUNTS], 1)
     ex_us = 1e6 * float(np.median(ex_cpu))
-    flags = {k: vecs[k].flags for k in COUNTS}
     total_frames = per_round * rounds * 2
     flag_text = "; ".join(f"{k} joints: " + ", ".join(f"{n} {v}" for n, v in flags[k].items()) for k in COUNTS)
     text = "\n".join([
@@ -1105,8 +1109,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"Stream: `bench/skeleton.py`'s (full skeleton, 56 markers, 0.5 mm noise, 2 % occluded, 100 Hz), {rounds} "
         f"round(s) of {per_round} frames after {WARM} warm-up frames; median round. Baseline (parse alone, "
         f"`MessageRouter.frame`, same run): **{base_us:.0f} us per frame**. Prototype: `bench/vector_core.py` "
-        "`VectorSkeleton`, one unit per body segment (shared mode); its stages timed in a second pass "
-        "(process_time around each stage: adds ~1 us per stage).",
+        "`VectorSkeleton`, one unit per body segment (shared mode), timed whole on the first chunk of each "
+        "round and stage by stage (process_time around each stage: ~1 us each) on the second; current path and "
+        "baseline: median over both chunks of every round.",
         "",
         markdown_table(header, rows),
         "",
