@@ -131,6 +131,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "vector_core.md"
 RATE = 100.0
 COUNTS = (1, 2, 6, 12)
 CALL_FRAMES = 200  # frames of the calls count
+TARGET_US = 150.0  # issue 16's target for the 12-joint full body (us per frame)
 STAGES = ("parse", "(a) fill", "(b) pose", "(c) gate", "(d) joint", "(e) sums", "(f) output", "(g) encode")
 P = 4  # markers per segment (every segment of the fake skeleton)
 PATTERNS = 1 << P
@@ -1083,6 +1084,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     flags = {k: dict(vecs[k].flags) for k in COUNTS}  # (before the calls count)
     calls = calls_per_stage(vecs[12], messages[-CALL_FRAMES:])
     costs = call_costs()
+    small = [us for name, us in costs.items() if not name.startswith("eigh")]
+    lo_cost, hi_cost = min(small), max(small)
     base_us = 1e6 * float(np.median(base))
     med_cur = {k: 1e6 * float(np.median(cur[k])) for k in COUNTS}
     med_vec = {k: 1e6 * float(np.median(vec_cpu[k])) for k in COUNTS}
@@ -1120,6 +1123,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         "CPU of one numpy call on this machine, this run (us): "
         + "; ".join(f"{name}: {us:.2f}" for name, us in costs.items()) + ".",
+        "",
+        f"Budget: issue 16's {TARGET_US:.0f} us for 12 joints, less the parse baseline ({base_us:.0f} us), leaves "
+        f"{TARGET_US - base_us:.0f} us: {(TARGET_US - base_us) / hi_cost:.0f}-{(TARGET_US - base_us) / lo_cost:.0f} "
+        f"numpy calls at {lo_cost:.1f}-{hi_cost:.1f} us each (the kinds above but eigh), against "
+        f"{calls.sum() - calls[0]:.0f} calls per frame past the parse in the prototype (operators such as `a + b` "
+        f"not counted). The prototype with 1 joint (2 segments) costs {med_vec[1]:.0f} us, "
+        f"{100.0 * med_vec[1] / med_vec[12]:.0f} % of its 12-joint cost: the per-frame cost is the number of calls, "
+        "not the joints.",
         "",
         f"Slow-path flags over the {total_frames} frames per joint count (not implemented; counted): {flag_text}. "
         "`gate_slow`: units that would fail the outlier gate or its turn test; `joint_slow`: joints failing the "
