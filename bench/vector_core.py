@@ -1093,7 +1093,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     header = ["joints", "units (K)", "current path (us)", "prototype (us)", "x faster", "prototype / baseline",
               *(f"{s} (us)" for s in STAGES), "sum of stages (us)"]  # fmt: skip
     rows = [
-        [f"{k}", f"{vecs[k].K}", f"{med_cur[k]:.0f}", f"{med_vec[k]:.0f}", f"{med_cur[k] / med_vec[k]:.0f}",
+        [f"{k}", f"{vecs[k].K}", f"{med_cur[k]:.0f}", f"{med_vec[k]:.0f}", f"{med_cur[k] / med_vec[k]:.1f}",
          f"{med_vec[k] / base_us:.1f}", *(f"{x:.0f}" for x in med_stage[k]), f"{med_stage[k].sum():.0f}"]
         for k in COUNTS
     ]  # fmt: skip
@@ -1105,7 +1105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     text = "\n".join([
         "# Feasibility of issue 16's vectorised core: CPU per frame, stage by stage (prototype)",
         "",
-        f"Command: `python bench/vector_core.py{' --quick' if opts.quick else ''}`; commit {commit}; "
+        f"Command: `python bench/vector_core.py{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`; commit {commit}; "
         f"{started:%Y-%m-%d %H:%M %Z}.",
         f"Machine: {host}.",
         "",
