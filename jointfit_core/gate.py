@@ -34,7 +34,11 @@ is the window's pooled pose-fit residual (on skin markers: the noise plus the
 cluster's deformation), read again every
 :data:`~jointfit_core.estimator.GATE_REFRESH_FRAMES` frames, so that a marker
 back from an occlusion, with no recent reference, is judged against the
-deformation the cluster normally shows, not the template frames' noise.
+deformation the cluster normally shows, not the template frames' noise. The
+limit is at least ``gate^2`` times the segment's own recent level
+(:data:`GATE_RESIDUAL_RECENT`), so that the first movement after a still
+stance, whose deformation the stance-filled window has not seen, is judged
+against what the cluster showed a few frames before.
 
 Templates (:func:`consistent_frames`): frames are split at sudden changes of
 their inter-marker distances (above :data:`~jointfit_core.segment_tracker.TEMPLATE_DEV_FACTOR`
