@@ -34,7 +34,11 @@ is the window's pooled pose-fit residual (on skin markers: the noise plus the
 cluster's deformation), read again every
 :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames, so that a marker
 back from an occlusion, with no recent reference, is judged against the
-deformation the cluster normally shows, not the template frames' noise.
+deformation the cluster normally shows, not the template frames' noise. The
+limit is at least ``gate^2`` times the segment's own recent level
+(:data:`GATE_RESIDUAL_RECENT`), so that the first movement after a still
+stance, whose deformation the stance-filled window has not seen, is judged
+against what the cluster showed a few frames before.
 
 Templates (:func:`consistent_frames`): frames are split at sudden changes of
 their inter-marker distances (above :data:`~jointfit_core.segment_tracker.TEMPLATE_DEV_FACTOR`
@@ -60,6 +64,7 @@ __all__ = [
     "GATE_JUMP_MADS",
     "GATE_JUMP_GAP_CAP",
     "GATE_JUMP_LOW",
+    "GATE_RESIDUAL_RECENT",
     "ShapeTrack",
     "consistent_frames",
     "frame_jumps",
@@ -82,6 +87,13 @@ GATE_JUMP_GAP_CAP = 10
 #: Outlier gate: a segment that fails the residual test fails the gate when its jump exceeds this
 #: many times its normal jump (markers displaced twice as much as usual).
 GATE_JUMP_LOW = 4.0
+#: Outlier gate: the residual test's level follows the segment's recent frames: it is at least
+#: ``gate^2`` times the median mean squared residual per degree of freedom of the segment's last
+#: this many frames that passed. A skin cluster's residual grows smoothly as the joint starts to move
+#: (the template frames were still): from one frame to the next it never grows ``gate^2`` times, so the
+#: first movement after a still stance is not judged against the stance's noise, while a marker that
+#: suddenly leaves the cluster still is (:meth:`ShapeTrack.recent_residual`).
+GATE_RESIDUAL_RECENT = 3
 #: Template frames: the quantile of the frame-to-frame changes that scales a sudden change.
 _TEMPLATE_STEP_QUANTILE = 0.9
 
@@ -216,6 +228,9 @@ class ShapeTrack:
         self.last_code = np.zeros(n_markers, dtype=np.int64)
         self.confirmed = False  # a frame has passed since the start
         self.history: deque[float] = deque(seed or (), maxlen=GATE_HISTORY_FRAMES)
+        # mean squared residual per degree of freedom of the last frames that passed (recent_residual)
+        self.residuals: deque[float] = deque(maxlen=GATE_RESIDUAL_RECENT)
+        self._recent = 0.0
         # The latest write of the references (and of ``last``), as (frame number, code): every marker of
         # that code has its reference from that frame and that fit until the next write. (0, -1): not
         # known. :meth:`jump`'s shortcut for a frame of the same markers (the usual frame).
@@ -279,10 +294,33 @@ class ShapeTrack:
         diff = local[fresh] - ref[rows]
         return float((np.einsum("pi,pi->p", diff, diff) / gap[fresh]).max()), stale
 
-    def passed(self, index: NDArray[np.intp], local: FloatArray, frame_no: int, jump: float, code: int) -> None:
-        """The segment passed with markers ``index`` posed at ``local``: they become the references."""
+    def recent_residual(self) -> float:
+        """The median mean squared residual per degree of freedom of the last :data:`GATE_RESIDUAL_RECENT` frames that passed (0 before any).
+
+        Input units squared. The residual test's limit is at least ``gate^2`` times it
+        (:meth:`~jointfit_core.segment_tracker.SegmentTracker.residual_bound`).
+        """
+        return self._recent
+
+    def _recent_changed(self) -> None:
+        """Keep :meth:`recent_residual` (the median of a few numbers, in Python: it is read per frame)."""
+        vals = sorted(self.residuals)
+        n = len(vals)
+        self._recent = 0.0 if n == 0 else vals[n // 2] if n % 2 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
+
+    def passed(
+        self, index: NDArray[np.intp], local: FloatArray, frame_no: int, jump: float, code: int, residual: float = math.nan
+    ) -> None:
+        """The segment passed with markers ``index`` posed at ``local``: they become the references.
+
+        ``residual``: the frame's mean squared pose-fit residual per degree of freedom (NaN: none,
+        fewer than 3 markers' worth of freedom), for :meth:`recent_residual`.
+        """
         if math.isfinite(jump):
             self.history.append(jump)
+        if math.isfinite(residual):
+            self.residuals.append(residual)
+            self._recent_changed()
         self.ref[index] = local
         self.at[index] = frame_no
         self.code[index] = code
@@ -328,12 +366,21 @@ class ShapeTrack:
         return ref, at, code
 
     def passed_block(
-        self, local: FloatArray, vis: NDArray[np.bool_], numbers: NDArray[np.int64], jumps: FloatArray
+        self,
+        local: FloatArray,
+        vis: NDArray[np.bool_],
+        numbers: NDArray[np.int64],
+        jumps: FloatArray,
+        residuals: FloatArray,
     ) -> None:
-        """:meth:`passed` and :meth:`seen` of each frame of a run (``local`` (K, P, 3), ``vis`` (K, P), oldest first)."""
+        """:meth:`passed` and :meth:`seen` of each frame of a run (``local`` (K, P, 3), ``vis`` (K, P), ``residuals`` (K,), oldest first)."""
         if not vis.shape[0]:
             return
         self.history.extend(jumps[np.isfinite(jumps)].tolist())
+        recent = residuals[np.isfinite(residuals)][-GATE_RESIDUAL_RECENT:]
+        if recent.size:
+            self.residuals.extend(recent.tolist())
+            self._recent_changed()
         codes = vis.astype(np.int64) @ np.left_shift(np.int64(1), np.arange(vis.shape[1], dtype=np.int64))
         seen = vis.any(axis=0)
         latest = vis.shape[0] - 1 - np.argmax(vis[::-1], axis=0)
@@ -407,7 +454,13 @@ class BlockJumps:
     vis : ndarray of bool, shape (K, P)
     numbers : ndarray of int, shape (K,)
     residual_bad : ndarray of bool, shape (K,)
-        The residual test of each frame.
+        The residual test of each frame, against the pooled level only: at least as strict as
+        the frame path's (:meth:`~jointfit_core.segment_tracker.SegmentTracker.residual_bound`),
+        so the frames that may fail are a superset.
+    residuals : ndarray, shape (K,)
+        Each frame's mean squared residual per degree of freedom (NaN: none), for
+        :meth:`ShapeTrack.recent_residual` of the frames that pass in bulk and moved as usual
+        (no stale marker, jump within ``limit``).
     limit, low : float
         ``gate^2`` and :data:`GATE_JUMP_LOW` times the normal jump (input units squared).
     """
@@ -419,11 +472,12 @@ class BlockJumps:
         vis: NDArray[np.bool_],
         numbers: NDArray[np.int64],
         residual_bad: NDArray[np.bool_],
+        residuals: FloatArray,
         limit: float,
         low: float,
     ) -> None:
         self.track, self.local, self.vis, self.numbers = track, local, vis, numbers
-        self.residual_bad, self.limit, self.low = residual_bad, limit, low
+        self.residual_bad, self.residuals, self.limit, self.low = residual_bad, residuals, limit, low
         self.jump, self.stale = frame_jumps(local, vis, *track.block_references(local, vis, numbers), numbers)
         # the jump from the previous frame matters only where the jump exceeds the limit
         self.jump_last = np.full(self.jump.shape, np.inf)
@@ -440,7 +494,11 @@ class BlockJumps:
 
     def passed(self, lo: int, hi: int) -> None:
         """Frames ``lo:hi`` passed in bulk: their markers become the references, their jumps the history."""
-        self.track.passed_block(self.local[lo:hi], self.vis[lo:hi], self.numbers[lo:hi], self.jump[lo:hi])
+        usual = ~self.stale[lo:hi] & (self.jump[lo:hi] <= self.limit)  # as SegmentTracker.shape_test's
+        self.track.passed_block(
+            self.local[lo:hi], self.vis[lo:hi], self.numbers[lo:hi], self.jump[lo:hi],
+            np.where(usual, self.residuals[lo:hi], np.nan),
+        )
 
     def recheck(self, i: int, margin: float) -> NDArray[np.intp]:
         """Frame ``i`` went one by one: the later frames (positions) that may now fail (none if it passed whole)."""

@@ -323,13 +323,14 @@ def _gated_block(
         dof = fields[5].reshape(-1)[seg]
         candidate = np.zeros(rows.size, dtype=bool)
         residual_bad = (sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)
+        levels = np.divide(sss, dof, out=np.full(sss.shape, np.nan), where=dof > 0.0)  # per degree of freedom
         local = np.einsum("kpi,kij->kpj", Y_seg - ds[:, None, :], Rs)  # R^T (y - d) of every marker
         vis = fields[1].reshape(-1, Y.shape[2])[seg] > 0.0
         for k, segment in enumerate((pose.parent, pose.child)):
             sel, p = side == k, segment.n_markers
             bj = BlockJumps(
                 segment.shape, local[sel, :p], vis[sel, :p], numbers[rows[seg_rows[k]]], residual_bad[sel],
-                *segment.jump_limits,
+                levels[sel], *segment.jump_limits,
             )
             candidate[seg_rows[k][bj.fails(_SS_MARGIN)]] = True
             shapes.append(bj)

@@ -16,6 +16,7 @@ today each joint owns one pair.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -278,22 +279,23 @@ class SegmentPair:
 
     def shape_tests(
         self, ps: PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: bool
-    ) -> tuple[list[FloatArray | None], list[float], list[bool]]:
-        """Per segment of a posed frame: its markers in the template frame, its jump and whether it fails the gate.
+    ) -> tuple[list[FloatArray | None], list[float], list[bool], list[bool]]:
+        """Per segment of a posed frame: its markers in the template frame, its jump, whether it fails the gate and whether it moved as usual.
 
         :meth:`~jointfit_core.segment_tracker.SegmentTracker.shape_test` of each posed segment.
         """
         local: list[FloatArray | None] = [None, None]
         jumps = [np.inf, np.inf]
         fails = [False, False]
+        usual = [False, False]
         Y = self.Y
         for k, vs in enumerate((ps.parent, ps.child)):
             if vs is not None:
                 seg = self.tracker(k)
                 n = vs.index.size
                 y = Y[k, :n] if n == seg.n_markers else Y[k, vs.index]  # all visible: its rows as they are
-                local[k], jumps[k], fails[k] = seg.shape_test(y, vs, R[k], d[k], float(ss[k]), frame_no, refit)
-        return local, jumps, fails
+                local[k], jumps[k], fails[k], usual[k] = seg.shape_test(y, vs, R[k], d[k], float(ss[k]), frame_no, refit)
+        return local, jumps, fails, usual
 
     def seen(self, ps: PairSet, local: list[FloatArray | None], frame_no: int) -> None:
         """Keep each posed segment's markers of this frame (before the gate) for the next frame's test."""
@@ -326,7 +328,7 @@ class SegmentPair:
             shape test (a rigid turn without either: the segment jumped, its reference starts
             afresh). On a pass, each posed segment's turn and shape references move to this frame.
         """
-        local, jumps, fails = self.shape_tests(ps, R, d, ss, frame_no, refit)
+        local, jumps, fails, usual = self.shape_tests(ps, R, d, ss, frame_no, refit)
         active = (self.parent.turn_active(frame_no), self.child.turn_active(frame_no))
         turned = [False, False]
         labels: list[NDArray[np.intp] | None] = [None, None]
@@ -355,7 +357,10 @@ class SegmentPair:
             if vs is not None and lk is not None:
                 seg = self.tracker(k)
                 seg.set_reference(R[k], d[k], frame_no)
-                seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code)
+                # the residual test's recent level: frames that passed whole (not a refit's chosen subset)
+                # and moved as usual
+                level = float(ss[k]) / vs.dof if usual[k] and not refit and vs.dof > 0.0 else math.nan
+                seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code, level)
         if not refit:
             self.seen(ps, local, frame_no)
         return None

@@ -153,6 +153,7 @@ class SegmentTracker:
         #: The jump test's limit, ``gate^2`` times the normal jump (input units squared).
         self.jump_limit = np.inf
         self._jump_low = np.inf
+        self._gate2 = np.inf  # gate^2 (set_limits)
 
     # ------------------------------------------------------------------ template and visibility
 
@@ -252,8 +253,22 @@ class SegmentTracker:
         :data:`~jointfit_core.gate.GATE_JUMP_LOW` times it (input units squared).
         """
         self.residual_limit = residual_limit
+        self._gate2 = gate**2
         self.jump_limit = gate**2 * normal_jump
         self._jump_low = GATE_JUMP_LOW * normal_jump
+
+    def residual_bound(self) -> float:
+        """The residual test's limit now: mean squared residual per degree of freedom (input units squared).
+
+        :attr:`residual_limit` (``gate^2`` times the window's pooled residual level), or ``gate^2``
+        times the segment's recent level (:meth:`~jointfit_core.gate.ShapeTrack.recent_residual`,
+        :data:`~jointfit_core.gate.GATE_RESIDUAL_RECENT`) when that is larger: a skin cluster's
+        deformation, which grows smoothly when the joint starts to move after a still stance,
+        is judged against what the cluster showed a few frames before, not against the noise
+        of the stance that fills the window.
+        """
+        recent = self.shape.recent_residual()
+        return max(self.residual_limit, self._gate2 * recent) if recent > 0.0 else self.residual_limit
 
     @property
     def jump_limits(self) -> tuple[float, float]:
@@ -285,18 +300,22 @@ class SegmentTracker:
 
     def shape_test(
         self, y: FloatArray, vs: VisibleSet, R: FloatArray, d: FloatArray, ss: float, frame_no: int, refit: bool
-    ) -> tuple[FloatArray, float, bool]:
-        """A posed frame's markers in the template frame, its jump, and whether it fails the gate.
+    ) -> tuple[FloatArray, float, bool, bool]:
+        """A posed frame's markers in the template frame, its jump, whether it fails the gate and whether it moved as usual.
 
         ``y`` (n, 3): the visible markers ``vs``, posed ``R``, ``d`` with residual sum of
         squares ``ss``. :func:`~jointfit_core.gate.gate_fails`, scalar: the jump
         (:class:`~jointfit_core.gate.ShapeTrack`) against the jump limits, the residual
-        against :attr:`residual_limit` per degree of freedom. ``refit``: the markers the
-        gate kept (:meth:`leave_out`), which pass when they pass the residual test.
+        against :meth:`residual_bound` per degree of freedom. ``refit``: the markers the
+        gate kept (:meth:`leave_out`), which pass when they pass the residual test. *Moved as
+        usual*: every visible marker has a recent reference and the jump is within the jump
+        limit; only such a frame's residual, when it passes whole (not a refit's subset), sets
+        the residual test's recent level, so that a lasting swap or ghost, or a subset the
+        leave-out refit chose, cannot raise it (:meth:`residual_bound`).
         """
         local = (y - d) @ R
         jump, stale = self.shape.jump(vs.index, local, frame_no, vs.code)
-        bad = bool(ss > self.residual_limit * vs.dof and vs.dof > 0.0)
+        bad = bool(ss > self.residual_bound() * vs.dof and vs.dof > 0.0)
         # gate_fails, in scalars, with the jump from the previous frame only where it matters (per-frame cost)
         limit, low = self.jump_limits
         if jump == np.inf:
@@ -305,7 +324,7 @@ class SegmentTracker:
             fail = bad and (stale or jump > low)
             if not fail and jump > limit:
                 fail = self.shape.jump(vs.index, local, frame_no, vs.code, last=True)[0] > limit
-        return local, jump, fail and (bad or not refit)
+        return local, jump, fail and (bad or not refit), not stale and jump <= limit
 
     def _fails(self, index: NDArray[np.intp], y: FloatArray, R: FloatArray, d: FloatArray, bad: bool, frame_no: int) -> bool:
         """:func:`~jointfit_core.gate.gate_fails` of markers ``index`` at ``y`` (n, 3) posed ``R``, ``d``."""
@@ -346,6 +365,7 @@ class SegmentTracker:
         assert self.template is not None
         if not np.isfinite(self.residual_limit):
             return None
+        bound = self.residual_bound()
         dof = 3 * index.size - 6
         best: tuple[float, NDArray[np.intp]] | None = None
         for perm in itertools.permutations(range(index.size)):
@@ -357,7 +377,7 @@ class SegmentTracker:
             if cos_turn(R, self.ref_R) < COS_MAX_TURN:
                 continue
             ss = float(np.sum((x @ R.T + d - y) ** 2))
-            if self._fails(labels, y, R, d, ss > self.residual_limit * dof, frame_no):
+            if self._fails(labels, y, R, d, ss > bound * dof, frame_no):
                 continue
             if best is None or ss < best[0]:
                 best = (ss, labels)
@@ -388,6 +408,7 @@ class SegmentTracker:
         assert self.template is not None
         idx = vs.index
         x = self.template[idx]
+        bound = self.residual_bound()
         best: tuple[float, tuple[int, ...]] | None = None
         for n_out in (1, 2):
             if idx.size - n_out < MIN_POSE_MARKERS:
@@ -397,7 +418,7 @@ class SegmentTracker:
                 Rk, dk = kabsch(y[keep], x[keep])
                 ss = float(np.sum((x[keep] @ Rk.T + dk - y[keep]) ** 2))
                 # else it fits as well as ever
-                if ss > self.residual_limit * (3 * keep.size - 6) and self._fails(idx[keep], y[keep], Rk, dk, True, frame_no):
+                if ss > bound * (3 * keep.size - 6) and self._fails(idx[keep], y[keep], Rk, dk, True, frame_no):
                     continue
                 if active and cos_turn(Rk, self.ref_R) < COS_MAX_TURN:
                     continue

@@ -76,7 +76,7 @@ def test_passed_block_leaves_no_shortcut() -> None:
     track = ShapeTrack(4)
     local = rng.normal(size=(3, 4, 3))
     vis = np.array([[True, True, True, True], [True, True, True, False], [True, True, True, False]])
-    track.passed_block(local, vis, np.array([1, 2, 3]), np.zeros(3))
+    track.passed_block(local, vis, np.array([1, 2, 3]), np.zeros(3), np.full(3, np.nan))
     index = np.arange(4)
     y = local[0] + 1e-3
     assert track.jump(index, y, 4, marker_code(index)) == _twin(track, index, y, 4, False)

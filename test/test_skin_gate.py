@@ -224,6 +224,9 @@ def test_runner_status_warns_when_the_gate_rejects_over_10_percent(tmp_path: Pat
 def test_a_marker_back_from_an_occlusion_passes_without_any_estimate(seed: int) -> None:
     """4-marker skin clusters at 50 Hz after a still start, a thigh marker occluded for 15 frames every 2 s, nothing solved.
 
+    Since the residual test's level follows the segment's recent frames (GATE_RESIDUAL_RECENT) this
+    holds from the first movement on; before, the first movement was left out of the check.
+
     The gate's residual level is the window's pooled residual, read every ``GATE_REFRESH_FRAMES``
     frames. Held at the still template frames' noise until a first estimate (whole-recording
     ``update_many``, the node's first seconds), a returning marker of a deforming cluster failed
@@ -239,7 +242,6 @@ def test_a_marker_back_from_an_occlusion_passes_without_any_estimate(seed: int) 
     for start in range(400, t.size, 100):
         thigh[start : start + 15, start // 100 % 4] = np.nan
     bad = _corrupt(seed, thigh, shank, 0.02)
-    bad[:400] = False
     one = OnlineJoint("hinge", half_life=float("inf"))
     many = OnlineJoint("hinge", half_life=float("inf"))
     one.gate_log, many.gate_log = [], []
@@ -248,6 +250,42 @@ def test_a_marker_back_from_an_occlusion_passes_without_any_estimate(seed: int) 
     many.update_many(thigh, shank, t)
     assert one.solution is None and many.solution is None
     assert one.gate_log == many.gate_log and one.gated_frames == many.gated_frames
-    g = _gated(one, t.size)[400:]  # (the first movement after the still start: see the README)
-    caught, wrong = int((g & bad[400:]).sum()), int((g & ~bad[400:]).sum())
-    assert caught >= 0.95 * bad.sum() and wrong <= 0.02 * (~bad[400:]).sum(), (caught, int(bad.sum()), wrong)
+    g = _gated(one, t.size)  # from the first movement after the still start on (GATE_RESIDUAL_RECENT)
+    caught, wrong = int((g & bad).sum()), int((g & ~bad).sum())
+    assert caught >= 0.95 * bad.sum() and wrong <= 0.02 * (~bad).sum(), (caught, int(bad.sum()), wrong)
+
+
+@pytest.mark.parametrize("deformation_mm", [6.0, 15.0])
+@pytest.mark.parametrize("seed", [5, 6, 7])
+def test_the_first_movement_after_a_still_stance_passes(seed: int, deformation_mm: float) -> None:
+    """4-marker skin clusters at 50 Hz: 2 s still at extension, then flexions (with 2 s pauses); no corruption.
+
+    During the stance the window's pooled residual and the gate's normal jump are the noise's
+    (0.2 mm). When the knee starts to flex the clusters deform (a 6-15 mm artefact): the pose-fit
+    residual grows ~1000 times within a second. Judged against the stance's pooled level, the
+    first movement failed the residual test, one marker was left out, and with its reference
+    gone stale it was kept out until the pooled level caught up: 29-53 segment-frames lost at
+    6 mm, 36-774 at 15 mm (whole segments included) on these seeds. The residual test now holds
+    at least ``gate^2`` times the segment's last few frames that passed whole and moved as
+    usual (:data:`~jointfit_core.gate.GATE_RESIDUAL_RECENT`): none is lost. Frame by frame and
+    in one block alike.
+    """
+    rng = np.random.default_rng(seed)
+    motion = two_segment_motion(rng, kind="hinge", n_markers=(4, 4))
+    t = np.arange(1500) / 50.0
+    amp = deformation_mm / np.sqrt(1.0 - 0.75**2)
+    thigh, shank = skin_markers_at(rng, motion, _paused(motion, t), parent_mm=amp, child_mm=amp, mode="angle", noise_std=0.2)
+    one = OnlineJoint("hinge", half_life=float("inf"))
+    many = OnlineJoint("hinge", half_life=float("inf"))
+    one.gate_log, many.gate_log = [], []
+    for k in range(t.size):
+        one.update(thigh[k], shank[k], t[k])
+    many.update_many(thigh, shank, t)
+    assert one.gate_log == many.gate_log and one.dropped == many.dropped
+    assert one.dropped == {}, one.dropped
+    # not vacuous: the clusters deformed far beyond the stance's noise, and the stance came first
+    noise = one.statistics.noise_sums()
+    assert noise is not None
+    pooled_mm = np.sqrt(noise[0] / noise[1])  # per segment, the window's pooled pose-fit residual
+    assert pooled_mm.min() > 5 * 0.2, pooled_mm
+    assert np.ptp(_paused(motion, t[:100])) == 0.0
