@@ -88,6 +88,27 @@ def _fit(thigh: FloatArray, shank: FloatArray, t: FloatArray, blocks: bool = Tru
     return est
 
 
+def _knee_50hz(seed: int, deformation_mm: float) -> tuple[TwoSegmentMotion, FloatArray, FloatArray, FloatArray]:
+    """(motion, stamps, thigh (N, 4, 3), shank): 4-marker skin clusters at 50 Hz, 30 s from a 2 s still start, 0.2 mm noise."""
+    rng = np.random.default_rng(seed)
+    motion = two_segment_motion(rng, kind="hinge", n_markers=(4, 4))
+    t = np.arange(1500) / 50.0
+    amp = deformation_mm / np.sqrt(1.0 - 0.75**2)
+    thigh, shank = skin_markers_at(rng, motion, _paused(motion, t), parent_mm=amp, child_mm=amp, mode="angle", noise_std=0.2)
+    return motion, t, thigh, shank
+
+
+def _frame_and_block(thigh: FloatArray, shank: FloatArray, t: FloatArray) -> tuple[OnlineJoint, OnlineJoint]:
+    """The same stream frame by frame and in one block, nothing solved, gate logs kept."""
+    one = OnlineJoint("hinge", half_life=float("inf"))
+    many = OnlineJoint("hinge", half_life=float("inf"))
+    one.gate_log, many.gate_log = [], []
+    for k in range(t.size):
+        one.update(thigh[k], shank[k], t[k])
+    many.update_many(thigh, shank, t)
+    return one, many
+
+
 def _gated(est: OnlineJoint, n: int) -> NDArray[np.bool_]:
     out = np.zeros((n, 2), dtype=bool)
     assert est.gate_log is not None
@@ -234,20 +255,11 @@ def test_a_marker_back_from_an_occlusion_passes_without_any_estimate(seed: int) 
     on these seeds 297-630 clean segment frames after the first movement were gated (now none).
     Swaps, ghosts and jumps are still caught; one block and frame by frame judge alike.
     """
-    rng = np.random.default_rng(seed)
-    motion = two_segment_motion(rng, kind="hinge", n_markers=(4, 4))
-    t = np.arange(1500) / 50.0
-    amp = 6.0 / np.sqrt(1.0 - 0.75**2)
-    thigh, shank = skin_markers_at(rng, motion, _paused(motion, t), parent_mm=amp, child_mm=amp, mode="angle", noise_std=0.2)
+    _, t, thigh, shank = _knee_50hz(seed, 6.0)
     for start in range(400, t.size, 100):
         thigh[start : start + 15, start // 100 % 4] = np.nan
     bad = _corrupt(seed, thigh, shank, 0.02)
-    one = OnlineJoint("hinge", half_life=float("inf"))
-    many = OnlineJoint("hinge", half_life=float("inf"))
-    one.gate_log, many.gate_log = [], []
-    for k in range(t.size):
-        one.update(thigh[k], shank[k], t[k])
-    many.update_many(thigh, shank, t)
+    one, many = _frame_and_block(thigh, shank, t)
     assert one.solution is None and many.solution is None
     assert one.gate_log == many.gate_log and one.gated_frames == many.gated_frames
     g = _gated(one, t.size)  # from the first movement after the still start on (GATE_RESIDUAL_RECENT)
@@ -270,17 +282,8 @@ def test_the_first_movement_after_a_still_stance_passes(seed: int, deformation_m
     usual (:data:`~jointfit_core.gate.GATE_RESIDUAL_RECENT`): none is lost. Frame by frame and
     in one block alike.
     """
-    rng = np.random.default_rng(seed)
-    motion = two_segment_motion(rng, kind="hinge", n_markers=(4, 4))
-    t = np.arange(1500) / 50.0
-    amp = deformation_mm / np.sqrt(1.0 - 0.75**2)
-    thigh, shank = skin_markers_at(rng, motion, _paused(motion, t), parent_mm=amp, child_mm=amp, mode="angle", noise_std=0.2)
-    one = OnlineJoint("hinge", half_life=float("inf"))
-    many = OnlineJoint("hinge", half_life=float("inf"))
-    one.gate_log, many.gate_log = [], []
-    for k in range(t.size):
-        one.update(thigh[k], shank[k], t[k])
-    many.update_many(thigh, shank, t)
+    motion, t, thigh, shank = _knee_50hz(seed, deformation_mm)
+    one, many = _frame_and_block(thigh, shank, t)
     assert one.gate_log == many.gate_log and one.dropped == many.dropped
     assert one.dropped == {}, one.dropped
     # not vacuous: the clusters deformed far beyond the stance's noise, and the stance came first
