@@ -401,6 +401,7 @@ class OnlineJoint:
         self._serial: SerialInflation | None = None
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
+        self._white_sigma: tuple[float, float] | None = None
         self._matched: FloatArray | None = None  # hinge: point_child_matched (joint_file.matched_child_point)
         # The outlier gate: frames are numbered as they arrive (see _arrive: its turn test's clock);
         # its limits are cached (_gate_var); each segment's memory is in its tracker.
@@ -468,8 +469,23 @@ class OnlineJoint:
 
     @property
     def noise_std(self) -> tuple[float, float]:
-        """Marker noise estimates (parent, child) used by the latest estimate, input units."""
+        """Marker noise estimates (parent, child) used by the latest estimate, input units.
+
+        The pooled pose-fit residual: on skin markers it holds the clusters' deformation too
+        (the covariance's pose-noise part and the outlier gate use it as such); their white
+        noise alone is :attr:`white_noise_std`.
+        """
         return self._sigma
+
+    @property
+    def white_noise_std(self) -> tuple[float, float] | None:
+        """Skin markers: the white marker noise (parent, child) of the latest estimate, input units.
+
+        Read from the second differences of the pose-fit residuals
+        (:mod:`~jointfit_core.white_noise_sums`); what a ball joint's bias compensation used.
+        None for rigid markers and before an estimate.
+        """
+        return self._white_sigma
 
     @property
     def solution(self) -> PoseSumsCentre | PoseSumsAxis | None:
@@ -746,7 +762,7 @@ class OnlineJoint:
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
         if ps.parent is not None and ps.child is not None and not self._frozen:
-            self._stats.add_frame(R, d, ss, ps, stamp, frame_no)
+            self._stats.add_frame(R, d, ss, ps, stamp, frame_no, Y)
             self._version += 1
         else:
             self._stats.chained = False
@@ -967,6 +983,7 @@ class OnlineJoint:
         self._serial = result.serial
         self._statistical = result.statistical
         self._artefact_scale = result.artefact_scale
+        self._white_sigma = result.white_noise_std
         self._solved_version = result.version
         self._outputs.clear()
         self._joint.arm(self._solution, self.length_scale)

@@ -432,5 +432,7 @@ def _push_block(
     stamps = None if st is None else st[rows]
     times = stamps if stamps is not None else numbers[rows] / NOMINAL_RATE_HZ
     table = pose.table()
-    joint._stats.add_block(R, d, ss, table[6], table[5], which, paired, stamps, np.asarray(times, dtype=np.float64))
+    joint._stats.add_block(
+        R, d, ss, table[6], table[5], which, paired, stamps, np.asarray(times, dtype=np.float64), Y, table[1]
+    )
     joint._version += 1

@@ -33,6 +33,7 @@ from .serial import (
     TimeLagSums,
 )
 from .stats import SlidingSums, WindowSpec
+from .white_noise_sums import SecondDifferences, white_noise_from_sums
 
 __all__ = ["MOVING_DEG", "RelativePoseSums", "moving_seconds"]
 
@@ -53,7 +54,10 @@ _FS = slice(_LAG + 29, _LAG + 29 + N_FEATURE_SUMS)
 _TL = slice(_FS.stop, _FS.stop + N_TIME_LAG_SUMS)
 #: Then the seconds of movement the frame adds (:func:`moving_seconds`).
 _MOVE = _TL.stop
-_N_SUMS = _MOVE + 1
+#: Then, skin markers only (zero for rigid), the white-noise sums of the frame triple ending at the frame:
+#: ss_p, dof_p, ss_c, dof_c (:class:`~jointfit_core.white_noise_sums.SecondDifferences`).
+_WN = slice(_MOVE + 1, _MOVE + 5)
+_N_SUMS = _WN.stop
 #: Skin hinges only, at the end: the features' second moments (the alignment reading's Gram).
 _FM = slice(_N_SUMS, _N_SUMS + N_FEATURE_MOMENTS)
 _N_SUMS_HINGE = _FM.stop
@@ -129,6 +133,8 @@ class RelativePoseSums:
         self._cross_view = c[_LAG + 13 : _LAG + 29].reshape(4, 4)
         self._fs_view = c[_FS]  # the soft-tissue feature sums, then (skin hinges) their moments
         self._fm_view = c[_FM] if moments else None
+        self._wn_view = c[_WN]
+        self._second = SecondDifferences()  # skin: the white-noise sums' last two frames
 
     def _window(self) -> SlidingSums:
         if self.window is None:
@@ -136,7 +142,14 @@ class RelativePoseSums:
         return self.window
 
     def add_frame(
-        self, R: FloatArray, d: FloatArray, ss: FloatArray, pairs: PairSet, stamp: float | None, frame_no: int
+        self,
+        R: FloatArray,
+        d: FloatArray,
+        ss: FloatArray,
+        pairs: PairSet,
+        stamp: float | None,
+        frame_no: int,
+        Y: FloatArray | None = None,
     ) -> None:
         """Push one frame whose two segments are posed.
 
@@ -154,6 +167,9 @@ class RelativePoseSums:
             Seconds; without one, the frame's time is ``frame_no`` at the nominal rate.
         frame_no : int
             The frame's number (1-based count of the frames that reached the joint).
+        Y : ndarray, shape (2, Pmax, 3), optional
+            Both segments' markers (input units): skin markers' white-noise sums
+            (:class:`~jointfit_core.white_noise_sums.SecondDifferences`); without it they add nothing.
         """
         c = self._contribution
         z = self._z_view
@@ -170,6 +186,10 @@ class RelativePoseSums:
         c[_SS : _SS + 4 : 2] = ss
         if self._skin:
             feature_sums_into(z, self._fs_view, self._fm_view)
+            if Y is not None:
+                self._second.add_one(Y, pairs.wn, R, d, self.chained, self._wn_view)
+            else:
+                self._wn_view[:] = 0.0
         # The lag pair (previous frame in the statistics, this one), stored with this frame.
         if self.chained:
             c[_LAG] = 1.0
@@ -197,6 +217,8 @@ class RelativePoseSums:
         paired: NDArray[np.bool_],
         stamps: FloatArray | None,
         times: FloatArray,
+        Y: FloatArray | None = None,
+        wn_sets: FloatArray | None = None,
     ) -> None:
         """Push a block of frames whose two segments are posed, in a few vectorised steps.
 
@@ -216,6 +238,9 @@ class RelativePoseSums:
         times : ndarray, shape (M,)
             The frames' times for the pairs at lags in seconds (the stamps, or frame numbers at the
             nominal rate).
+        Y, wn_sets : ndarray, shapes (M, 2, Pmax, 3), (S, 2, Pmax), optional
+            Skin markers: the frames' markers and the marker sets' pose weights, for the white-noise
+            sums (as :meth:`add_frame`); without them they add nothing.
 
         Notes
         -----
@@ -236,8 +261,11 @@ class RelativePoseSums:
         z_prev[1:] = z[:-1]
         lagged = np.empty((m, N_TIME_LAG_SUMS))
         self._history.contributions(np.asarray(times, dtype=np.float64), z, lagged)
+        white = np.zeros((m, 4))
+        if self._skin and Y is not None and wn_sets is not None:
+            white = self._second.add_many(Y, wn_sets[which], R, d, paired)
         if window.spec.exponential:
-            self._push_weighted(window, z, z_prev, ss, W_sets, dof_sets, which, paired, stamps, lagged)
+            self._push_weighted(window, z, z_prev, ss, W_sets, dof_sets, which, paired, stamps, lagged, white)
         else:
             pr = np.flatnonzero(paired)
             c = np.empty((m, self.n_sums))
@@ -256,6 +284,7 @@ class RelativePoseSums:
                 c[:, _N_SUMS:] = fsum[:, N_FEATURE_SUMS:]
             c[:, _TL] = lagged
             c[:, _MOVE] = moving_seconds(lagged)
+            c[:, _WN] = white
             c[pr, _LAG + 13 : _LAG + 29] = np.matmul(np.swapaxes(z[pr], 1, 2), z_prev[pr]).reshape(pr.size, 16)
             window.push_many(c, stamps)
         self._z_prev[...] = z[-1]
@@ -272,6 +301,7 @@ class RelativePoseSums:
         paired: NDArray[np.bool_],
         stamps: FloatArray | None,
         lagged: FloatArray,
+        white: FloatArray,
     ) -> None:
         """:meth:`add_block` under exponential forgetting: no window ring to keep records for, one weighted sum."""
         m = z.shape[0]
@@ -299,6 +329,7 @@ class RelativePoseSums:
             total[_FS] = 0.0
         total[_TL] = w @ lagged
         total[_MOVE] = w @ moving_seconds(lagged)
+        total[_WN] = w @ white
         window.push_weighted_sum(total, w_old, m, stamps)
 
     def entered(self, status: str) -> FloatArray:
@@ -326,3 +357,9 @@ class RelativePoseSums:
             return None
         s = self.window.sums
         return s[_SS : _SS + 4 : 2], s[_SS + 1 : _SS + 4 : 2]
+
+    def white_noise(self) -> tuple[float, float]:
+        """The window's white marker noise (parent, child), input units; NaN without frame triples (rigid: always)."""
+        if self.window is None:
+            return (float("nan"), float("nan"))
+        return white_noise_from_sums(self.window.sums[_WN])

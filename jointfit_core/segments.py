@@ -488,6 +488,7 @@ def centre_from_pose_sums(
     *,
     length_scale: float = 0.0,
     compensate_bias: bool = True,
+    W_bias: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> PoseSumsCentre:
     """Ball-joint centres from running sums of relative poses (unweighted Stoddart eq. 9).
 
@@ -509,6 +510,13 @@ def centre_from_pose_sums(
         (input units; e.g. the cluster's rms radius). Default 0.
     compensate_bias : bool
         Remove the second-order bias caused by the pose noise (default True).
+    W_bias : (array_like, array_like), shapes (6, 6), optional
+        The pose covariances (parent, child) of the bias compensation when
+        they are not the covariance's: on skin markers, those of the white
+        marker noise (:mod:`jointfit_core.white_noise_sums`), since the
+        cluster's deformation, which ``W_parent_local`` and ``W_child_local``
+        hold, is not pose noise of that kind and would over-correct the
+        estimate by the square of its ratio to the noise. Default: those two.
 
     Returns
     -------
@@ -577,6 +585,9 @@ def centre_from_pose_sums(
     a = H_inv @ g
     if compensate_bias:
         Sp, Sc = Wp6[:3, :3], Wc6[:3, :3]
+        if W_bias is not None:
+            Sp = _check_cov6(W_bias[0], "W_bias[0]")[:3, :3]
+            Sc = _check_cov6(W_bias[1], "W_bias[1]")[:3, :3]
         D_p = (Sp - np.trace(Sp) * np.eye(3)) @ a[:3]
         D_c = (Sc - np.trace(Sc) * np.eye(3)) @ a[3:]
         expected = -0.5 * np.concatenate([n * D_p + S @ D_c, S.T @ D_p + n * D_c])

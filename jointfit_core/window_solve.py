@@ -34,6 +34,7 @@ from .joint_sums import (
     _SS,
     _TL,
     _W,
+    _WN,
     _Z,
     _ZZ,
 )
@@ -59,6 +60,7 @@ from .serial import (
     serial_factor,
     smooth_energy_from_lags,
 )
+from .white_noise_sums import white_noise_from_sums
 
 __all__ = ["SKIN_MIN_MOVEMENT_S", "SolveRequest", "SolveResult", "solve_window", "unpack_pose_sums"]
 
@@ -236,6 +238,11 @@ class SolveResult:
         soft-tissue part); None for rigid markers (``solution`` is that).
     artefact_scale : float
         The soft-tissue prior's estimated scale (input units per radian; 0 for rigid).
+    white_noise_std : tuple of float or None
+        Skin markers: the white marker noise (parent, child) read from the second differences of
+        the pose-fit residuals (:mod:`~jointfit_core.white_noise_sums`), where the window has frame
+        triples for it (else the pooled noise), input units; what a ball joint's bias compensation
+        used. None for rigid markers (``noise_std`` is white noise there).
     """
 
     solution: PoseSumsCentre | PoseSumsAxis
@@ -245,6 +252,7 @@ class SolveResult:
     version: int
     statistical: PoseSumsCentre | PoseSumsAxis | None = None
     artefact_scale: float = 0.0
+    white_noise_std: tuple[float, float] | None = None
 
 
 def solve_window(request: SolveRequest) -> SolveResult:
@@ -283,9 +291,12 @@ def solve_window(request: SolveRequest) -> SolveResult:
     sigma_c = sigma_c if fixed_c is None else fixed_c
     Wp, Wc = sigma_p**2 * Wp_unit, sigma_c**2 * Wc_unit
     scale = request.length_scale
+    skin = "skin" in request.attachment
+    white = _white_noise(request, (sigma_p, sigma_c)) if skin else None
     sol: PoseSumsCentre | PoseSumsAxis
     if request.kind == "ball":
-        sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale)
+        W_bias = None if white is None else (white[0] ** 2 * Wp_unit, white[1] ** 2 * Wc_unit)
+        sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale, W_bias=W_bias)
         c_p, c_c = sol.centre_parent, sol.centre_child
     else:
         sol = axis_from_pose_sums(sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction)
@@ -306,7 +317,7 @@ def solve_window(request: SolveRequest) -> SolveResult:
     if factor != 1.0:
         sol = _inflated(sol, factor, factor * dt, scale)
     serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs, frame_interval_s=dt)
-    if "skin" not in request.attachment:
+    if not skin:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
     smooth, rotation_smooth, rotation_ss = 0.0, 0.0, 0.0
     if lags.size:
@@ -319,7 +330,24 @@ def solve_window(request: SolveRequest) -> SolveResult:
     art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth, rotation_ss)
     window_s = float(sums.n) * dt if dt > 0.0 else float(sums.n) / NOMINAL_RATE_HZ
     total = _movement_verdict(_with_artefact(sol, art.cov), float(request.sums[_MOVE]), window_s)
-    return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale)
+    return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale, white)
+
+
+def _white_noise(request: SolveRequest, pooled: tuple[float, float]) -> tuple[float, float]:
+    """Skin markers: each segment's white noise, the smaller of the window's second-difference reading and the pooled one.
+
+    As :func:`~jointfit_core.segments.fit_centre_two_segments` reads it over a recording (``min``:
+    the second differences of a cluster without deformation read the pooled noise, to sampling);
+    the pooled noise where the window has no frame triple (3-marker clusters, every frame occluded
+    differently) or the noise is fixed.
+    """
+    read = white_noise_from_sums(request.sums[_WN])
+    out = []
+    for k in range(2):
+        w = read[k]
+        fixed = request.noise_std[k] is not None
+        out.append(pooled[k] if fixed or not np.isfinite(w) else min(pooled[k], w))
+    return (out[0], out[1])
 
 
 def _movement_verdict(sol: PoseSumsCentre | PoseSumsAxis, seconds: float, window_s: float) -> PoseSumsCentre | PoseSumsAxis:

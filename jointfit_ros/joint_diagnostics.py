@@ -178,6 +178,10 @@ def _estimate_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: st
         values["unit check"] = units
     values[f"noise sd parent ({u})"] = sigma_p
     values[f"noise sd child ({u})"] = sigma_c
+    white = est.white_noise_std
+    if white is not None:  # skin: the pooled noise above holds the clusters' deformation; this is the markers'
+        values[f"white noise sd parent ({u})"] = white[0]
+        values[f"white noise sd child ({u})"] = white[1]
     values[f"rms residual ({u})"] = sol.rms
     values["identifiable"] = sol.identifiable
     if not est.frozen and est.n_window >= 3:

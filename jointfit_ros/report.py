@@ -175,6 +175,8 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["gate_warning"] = warning
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
+    white = est.white_noise_std  # skin: the markers' noise alone (noise_sd holds the deformation too)
+    out["white_noise_sd"] = None if white is None else {"parent": white[0], "child": white[1]}
     if isinstance(sol, PoseSumsCentre):
         out["centre_parent"] = _list(sol.centre_parent)
         out["sd_parent"] = _sd(sol.cov_parent)

@@ -76,7 +76,11 @@ def test_artefact_part_does_not_shrink_with_the_window() -> None:
 
 
 def test_rigid_data_with_skin_setting_are_never_more_confident() -> None:
-    """Clean data told ``skin``: the same centre, a covariance at least the rigid one's (never more confident).
+    """Clean data told ``skin``: about the same centre, a covariance at least the rigid one's (never more confident).
+
+    About the same: the skin setting compensates the bias with the white noise of the second
+    differences (issue 17, item 1), on clean data the pooled noise to sampling (a few per cent),
+    which moves the centre by a few hundredths of its sd.
 
     A white residual shows no smooth part, but that does not prove there is none: the smooth part is
     taken at the size the lags could just not tell from noise (its detection limit), so the skin
@@ -86,7 +90,9 @@ def test_rigid_data_with_skin_setting_are_never_more_confident() -> None:
     for seed in (31, 32, 33):
         e_skin, est_skin, _ = _hip_trial(seed, 0.0, "skin")
         e_rigid, est_rigid, _ = _hip_trial(seed, 0.0, "rigid")
-        np.testing.assert_allclose(est_skin.estimate().centre_parent, est_rigid.estimate().centre_parent, rtol=1e-12)
+        rigid = est_rigid.estimate()
+        moved = np.linalg.norm(est_skin.estimate().centre_parent - rigid.centre_parent)
+        assert moved < 0.05 * np.sqrt(np.trace(rigid.cov_parent)), moved
         assert e_skin <= e_rigid, (e_skin, e_rigid)
         assert np.trace(est_skin.estimate().cov_parent) >= np.trace(est_rigid.estimate().cov_parent)
         assert est_rigid.statistical_solution is None and est_rigid.artefact_scale == 0.0
