@@ -187,7 +187,7 @@ class RelativePoseSums:
         if self._skin:
             feature_sums_into(z, self._fs_view, self._fm_view)
             if Y is not None:
-                self._second.add_one(Y, pairs.wn, R, d, self.chained, self._wn_view)
+                self._second.add_one(Y, pairs, R, d, self.chained, self._wn_view)
             else:
                 self._wn_view[:] = 0.0
         # The lag pair (previous frame in the statistics, this one), stored with this frame.

@@ -13,8 +13,13 @@ white noise is ``sqrt(ss / dof)`` (:func:`white_noise_from_sums`).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from .segment_pair import PairSet
 
 __all__ = ["MIN_WHITE_MARKERS", "SecondDifferences", "white_noise_from_sums"]
 
@@ -46,38 +51,51 @@ class SecondDifferences:
     """
 
     def __init__(self) -> None:
-        self._local: FloatArray | None = None  # (2 frames, 2 segments, Pmax, 3): older, newer
-        self._vis: BoolArray | None = None  # (2, 2, Pmax)
+        self._older: FloatArray | None = None  # (2 segments, Pmax, 3): the frame before the last
+        self._newer: FloatArray | None = None  # the last frame
+        self._codes: tuple[int, int, int, int] = (-1, -1, -1, -1)  # visible-marker codes: older (p, c), newer (p, c)
         self._last_paired = False  # whether the newer one was chained to the older
+        self._masks: dict[int, tuple[PairSet, FloatArray, FloatArray]] = {}  # per pair-set slot: its (2, Pmax, 1) mask, dofs
 
-    def add_one(self, Y: FloatArray, wn: FloatArray, R: FloatArray, d: FloatArray, paired: bool, out: FloatArray) -> None:
+    def _mask(self, pairs: PairSet) -> tuple[FloatArray, FloatArray]:
+        """The pair set's markers (1.0 where the pose used them, (2, Pmax, 1)) and each segment's triple dof (2,)."""
+        got = self._masks.get(pairs.slot)
+        if got is None or got[0] is not pairs:
+            n = np.array([0.0 if vs is None else vs.n for vs in (pairs.parent, pairs.child)])
+            dof = np.where(n >= MIN_WHITE_MARKERS, 6.0 * (3.0 * n - 6.0), 0.0)
+            got = (pairs, (pairs.wn > 0.0).astype(np.float64)[:, :, None], dof)
+            self._masks[pairs.slot] = got
+        return got[1], got[2]
+
+    def add_one(self, Y: FloatArray, pairs: PairSet, R: FloatArray, d: FloatArray, paired: bool, out: FloatArray) -> None:
         """One frame entering the statistics: write ``(ss_p, dof_p, ss_c, dof_c)`` into ``out`` (4,).
 
         ``Y`` (2, Pmax, 3): both segments' markers (input units; missing rows anything);
-        ``wn`` (2, Pmax): the pair set's weights, positive for the markers the pose used;
-        ``R`` (2, 3, 3), ``d`` (2, 3): the poses; ``paired``: whether the frame is chained to the
-        last frame this saw.
+        ``pairs``: its visible marker sets (the pose's); ``R`` (2, 3, 3), ``d`` (2, 3): the poses;
+        ``paired``: whether the frame is chained to the last frame this saw.
         """
         local = np.matmul(Y - d[:, None, :], R)  # rows R^T (y - d)
-        vis = wn > 0.0
-        prev, pvis = self._local, self._vis
-        if prev is None or pvis is None:
-            self._local = np.stack([local, local])
-            self._vis = np.stack([vis, vis])
-            out[:] = 0.0
-        else:
-            if paired and self._last_paired:
-                d2 = local - 2.0 * prev[1] + prev[0]
-                n_vis = vis.sum(axis=1)
-                ok = (vis == pvis[0]).all(axis=1) & (vis == pvis[1]).all(axis=1) & (n_vis >= MIN_WHITE_MARKERS)
-                out[0::2] = np.where(ok, np.einsum("kpi,kpi,kp->k", d2, d2, vis), 0.0)
-                out[1::2] = np.where(ok, 6.0 * (3.0 * n_vis - 6.0), 0.0)
-            else:
-                out[:] = 0.0
-            prev[0] = prev[1]
-            prev[1] = local
-            pvis[0] = pvis[1]
-            pvis[1] = vis
+        codes = (
+            -1 if pairs.parent is None else pairs.parent.code,
+            -1 if pairs.child is None else pairs.child.code,
+        )
+        older, newer, seen = self._older, self._newer, self._codes
+        out[:] = 0.0
+        if paired and self._last_paired and older is not None and newer is not None:
+            same = [codes[k] >= 0 and codes[k] == seen[k] == seen[2 + k] for k in range(2)]
+            if same[0] or same[1]:
+                mask, dof = self._mask(pairs)
+                d2 = local - newer
+                d2 -= newer
+                d2 += older
+                d2 *= mask
+                ss = np.einsum("kpi,kpi->k", d2, d2)
+                for k in range(2):
+                    if same[k] and dof[k] > 0.0:
+                        out[2 * k] = ss[k]
+                        out[2 * k + 1] = dof[k]
+        self._older, self._newer = newer, local
+        self._codes = (seen[2], seen[3], codes[0], codes[1])
         self._last_paired = bool(paired)
 
     def add_many(self, Y: FloatArray, wn: FloatArray, R: FloatArray, d: FloatArray, paired: BoolArray) -> FloatArray:
@@ -90,26 +108,22 @@ class SecondDifferences:
         vis = wn > 0.0
         paired = np.asarray(paired, dtype=bool)
         chained = np.empty(m, dtype=bool)  # the frame before each was chained to its own predecessor
-        chained[0] = self._last_paired and self._local is not None
+        chained[0] = self._last_paired and self._older is not None
         chained[1:] = paired[:-1]
-        if self._local is None or self._vis is None:
-            self._local = np.stack([local[0], local[0]])
-            self._vis = np.stack([vis[0], vis[0]])
-        L = np.concatenate([self._local, local])
-        V = np.concatenate([self._vis, vis])
+        older = local[0] if self._older is None else self._older
+        newer = local[0] if self._newer is None else self._newer
+        L = np.concatenate([older[None], newer[None], local])
+        codes = np.array(self._codes).reshape(2, 2)  # older, newer; per segment
+        row_codes = np.where(vis.any(axis=2), (vis * (np.int64(1) << np.arange(vis.shape[2]))).sum(axis=2), -1)
+        C = np.concatenate([codes, row_codes])  # (M + 2, 2) visible-marker codes, -1: not posed
         d2 = L[2:] - 2.0 * L[1:-1] + L[:-2]
         n_vis = vis.sum(axis=2)  # (M, 2)
-        ok = (
-            (paired & chained)[:, None]
-            & (V[2:] == V[1:-1]).all(axis=2)
-            & (V[2:] == V[:-2]).all(axis=2)
-            & (n_vis >= MIN_WHITE_MARKERS)
-        )
+        ok = (paired & chained)[:, None] & (C[2:] >= 0) & (C[2:] == C[1:-1]) & (C[2:] == C[:-2]) & (n_vis >= MIN_WHITE_MARKERS)
         out = np.zeros((m, 4))
         out[:, 0::2] = np.where(ok, np.einsum("mkpi,mkpi,mkp->mk", d2, d2, vis), 0.0)
         out[:, 1::2] = np.where(ok, 6.0 * (3.0 * n_vis - 6.0), 0.0)
-        self._local = L[-2:].copy()
-        self._vis = V[-2:].copy()
+        self._older, self._newer = L[-2].copy(), L[-1].copy()
+        self._codes = (int(C[-2, 0]), int(C[-2, 1]), int(C[-1, 0]), int(C[-1, 1]))
         self._last_paired = bool(paired[-1])
         return out
 

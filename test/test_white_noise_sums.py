@@ -115,27 +115,32 @@ def test_rigid_markers_keep_no_white_noise_sums() -> None:
 
 def test_second_differences_need_three_chained_frames_with_the_same_markers() -> None:
     """By hand: zeros until the third chained frame; a marker set change or a break restarts the count."""
+    t, parent, child = _hip(8, 0.0, seconds=1.0)
+    est = OnlineJoint("ball", window=t.size + 10, attachment="skin")
+    est.update_many(parent, child, t)
+    pair = est._pose
+    assert pair is not None
+    full = pair.pair(np.zeros((2, 4), dtype=bool))
+    lost = np.zeros((2, 4), dtype=bool)
+    lost[1, 0] = True  # the child without its first marker
+    partial = pair.pair(lost)
+    assert partial.child is not None
     rng = np.random.default_rng(0)
-    R = np.broadcast_to(np.eye(3), (2, 3, 3)).copy()
-    d = np.zeros((2, 3))
-    wn = np.full((2, 4), 0.25)
+    R = rng.normal(size=(6, 2, 3, 3))
+    d = rng.normal(size=(6, 2, 3))
     frames = rng.normal(size=(6, 2, 4, 3))
+    paired = np.array([False, True, True, True, False, True])
+    sets = [partial if k == 3 else full for k in range(6)]
     sd = SecondDifferences()
     out = np.empty(4)
     got = []
-    for k, paired in enumerate((False, True, True, True, False, True)):
-        w = wn.copy()
-        if k == 3:
-            w[1, 0] = 0.0  # the child lost a marker in frame 3
-        sd.add_one(frames[k], w, R, d, paired, out)
+    for k in range(6):
+        sd.add_one(frames[k], sets[k], R[k], d[k], bool(paired[k]), out)
         got.append(out.copy())
-    expected_p = float(np.sum((frames[2, 0] - 2 * frames[1, 0] + frames[0, 0]) ** 2))
-    np.testing.assert_allclose(got[2], [expected_p, 36.0, np.sum((frames[2, 1] - 2 * frames[1, 1] + frames[0, 1]) ** 2), 36.0])
+    local = np.matmul(frames - d[:, :, None, :], R)  # R^T (y - d) as rows
+    d2 = local[2] - 2 * local[1] + local[0]
+    np.testing.assert_allclose(got[2], [np.sum(d2[0] ** 2), 36.0, np.sum(d2[1] ** 2), 36.0], rtol=1e-12)
     assert not got[0].any() and not got[1].any() and not got[4].any() and not got[5].any()
-    assert got[3][1] == 36.0 and got[3][3] == 0.0  # parent's triple stands, the child's markers changed
-    again = SecondDifferences()
-    w_many = np.broadcast_to(wn, (6, 2, 4)).copy()
-    w_many[3, 1, 0] = 0.0
-    many = again.add_many(frames, w_many, np.broadcast_to(R, (6, 2, 3, 3)), np.zeros((6, 2, 3)),
-                          np.array([False, True, True, True, False, True]))  # fmt: skip
+    assert got[3][1] == 36.0 and got[3][3] == 0.0  # the parent's triple stands, the child's markers changed
+    many = SecondDifferences().add_many(frames, np.stack([ps.wn for ps in sets]), R, d, paired)
     np.testing.assert_allclose(many, np.array(got), rtol=1e-12)
