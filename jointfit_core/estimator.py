@@ -31,6 +31,7 @@ from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
 from .joint_sums import RelativePoseSums
 from .joint_world import JointOutput, WorldOutput
+from .lever import lever_ratios
 from .pose import MIN_POSE_MARKERS
 from .segment_pair import GateVerdict, PairSet, SegmentPair, poses
 from .segment_tracker import GATE_REFRESH_FRAMES, shape_ok
@@ -476,6 +477,22 @@ class OnlineJoint:
         noise alone is :attr:`white_noise_std`.
         """
         return self._sigma
+
+    @property
+    def lever_ratios(self) -> tuple[float, float] | None:
+        """Per segment (parent, child), the joint's distance from its cluster over the cluster's rms radius.
+
+        :func:`~jointfit_core.lever.lever_ratios` of the latest estimate (ball: the centre; hinge:
+        the axis line) with the templates; None before an estimate. The soft-tissue bias no
+        residual reveals grows with it (:mod:`jointfit_core.lever`).
+        """
+        sol = self._solution
+        tp, tc = self.templates
+        if sol is None or tp is None or tc is None:
+            return None
+        if isinstance(sol, PoseSumsCentre):
+            return lever_ratios((tp, tc), (sol.centre_parent, sol.centre_child))
+        return lever_ratios((tp, tc), (sol.point_parent, sol.point_child), (sol.direction_parent, sol.direction_child))
 
     @property
     def white_noise_std(self) -> tuple[float, float] | None:

@@ -108,6 +108,8 @@ def joint_status(runner: JointRunner) -> tuple[Status, bool]:
     u = runner.node.units
     units = unit_problem(est.length_scale, u)
     values.update(_estimate_values(est, sol, u, units))
+    for side, ratio in runner.lever_ratios().items():  # the invisible soft-tissue bias grows with it
+        values[f"lever / cluster radius {side}"] = ratio
     cfg = runner.cfg
     if sol.identifiable:
         values.update(runner.consistency.values(est, u))

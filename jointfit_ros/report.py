@@ -175,6 +175,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["gate_warning"] = warning
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
+    out["lever_ratio"] = r.lever_ratios()  # the joint's distance from each marker cluster, in cluster radii
     white = est.white_noise_std  # skin: the markers' noise alone (noise_sd holds the deformation too)
     out["white_noise_sd"] = None if white is None else {"parent": white[0], "child": white[1]}
     if isinstance(sol, PoseSumsCentre):

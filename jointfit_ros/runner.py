@@ -590,6 +590,18 @@ class JointRunner:
         sol = self.estimator.solution
         return sol is not None and (sol.identifiable or self.cfg.publish_unidentified)
 
+    def lever_ratios(self) -> dict[str, float]:
+        """Per marker segment (``parent``, ``child``), the joint's distance from its cluster in cluster radii.
+
+        :attr:`OnlineJoint.lever_ratios <jointfit_core.estimator.OnlineJoint.lever_ratios>`;
+        empty before an estimate; a pose-topic segment (a rigid body's virtual markers) has none.
+        """
+        ratios = self.estimator.lever_ratios
+        if ratios is None:
+            return {}
+        topics = (self.cfg.parent_pose_topic, self.cfg.child_pose_topic)
+        return {side: round(r, 2) for side, r, topic in zip(("parent", "child"), ratios, topics, strict=True) if not topic}
+
     def axis_words(self) -> str:
         """Which way the hinge axis points, in words (or that the sign is not chosen yet)."""
         if self.sign_text:
