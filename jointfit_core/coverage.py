@@ -5,8 +5,9 @@ The two-segment closed forms (:func:`~jointfit_core.segments.centre_from_pose_su
 identifiable when (1) the relative rotation exceeds what the pose noise alone
 would cause about the directions the joint needs (a ball: all three, i.e.
 rotation about at least two axes; a hinge: the flexion) and (2) its standard
-deviation is within the verdict's limit (a centre or axis point:
-:data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm; a hinge direction:
+deviation is within the verdict's limit (a centre:
+:data:`~jointfit_core.segments.CENTRE_SD_REL_MAX` of the lever arm; an axis point:
+:data:`~jointfit_core.segments.SD_REL_MAX` of it; a hinge direction:
 :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`). Coverage measures both in
 the same units: the information there is against the information needed.
 
@@ -34,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from .hinge_from_sums import PoseSumsAxis, _kq
 from .segments import (
     AXIS_SD_MAX_DEG,
+    CENTRE_SD_REL_MAX,
     NOISE_SNR_MIN,
     SD_REL_MAX,
     SINGULAR_REL,
@@ -120,6 +122,7 @@ def joint_coverage(
     sums: PoseSums | None = None,
     W_parent_local: ArrayLike | None = None,
     W_child_local: ArrayLike | None = None,
+    skin: bool = False,
 ) -> Coverage:
     """The coverage of a two-segment estimate (see the module docstring).
 
@@ -137,6 +140,9 @@ def joint_coverage(
     W_parent_local, W_child_local : array_like, shape (6, 6), optional
         The mean pose covariances the solve used (with the noise variance),
         rotation in rad, translation in input units; required with ``sums``.
+    skin : bool
+        Skin markers: a centre's limit is :data:`~jointfit_core.segments.SD_REL_MAX` of the lever
+        arm, as the verdict's on skin estimates (rigid: ``CENTRE_SD_REL_MAX``).
 
     Returns
     -------
@@ -149,7 +155,7 @@ def joint_coverage(
     if isinstance(solution, PoseSumsCentre):
         lever = max(float(np.linalg.norm(solution.centre_parent)), float(np.linalg.norm(solution.centre_child)),
                     length_scale)
-        limit_sq = (SD_REL_MAX * lever) ** 2
+        limit_sq = ((SD_REL_MAX if skin else CENTRE_SD_REL_MAX) * lever) ** 2
         lam_p, V = _eig(solution.cov_parent)
         lam_c, _ = _eig(solution.cov_child)
         by = np.array([_fraction(limit_sq, float(v)) for v in lam_p[::-1]])

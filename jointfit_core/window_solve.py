@@ -40,6 +40,7 @@ from .joint_sums import (
 )
 from .segments import (
     AXIS_SD_MAX_DEG,
+    CENTRE_SD_REL_MAX,
     SD_REL_MAX,
     PoseSums,
     PoseSumsCentre,
@@ -106,12 +107,14 @@ def _max_sd(cov: FloatArray, limit: float) -> float:
 
 
 def _inflated(
-    sol: PoseSumsCentre | PoseSumsAxis, factor: float, seconds: float, length_scale: float
+    sol: PoseSumsCentre | PoseSumsAxis, factor: float, seconds: float, length_scale: float, centre_limit: float
 ) -> PoseSumsCentre | PoseSumsAxis:
     """The estimate with its covariances times ``factor``; flagged when they exceed the verdict's limits.
 
-    The limits are the ones the closed forms check (a standard deviation above
-    :data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm, a direction sd
+    The limits are the ones the closed forms check (a centre's standard deviation above
+    ``centre_limit`` of the lever arm (:data:`~jointfit_core.segments.CENTRE_SD_REL_MAX`, skin
+    markers :data:`~jointfit_core.segments.SD_REL_MAX`), an axis point's above
+    :data:`~jointfit_core.segments.SD_REL_MAX`, a direction sd
     above :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`); an estimate already
     flagged keeps its reason.
     """
@@ -123,11 +126,11 @@ def _inflated(
         cov_p, cov_c = cov[:3, :3], cov[3:, 3:]
         if identifiable:
             lever = max(float(np.linalg.norm(sol.centre_parent)), float(np.linalg.norm(sol.centre_child)), length_scale)
-            sd = max(_max_sd(cov_p, SD_REL_MAX * lever), _max_sd(cov_c, SD_REL_MAX * lever))
-            if not sd <= SD_REL_MAX * lever:
+            sd = max(_max_sd(cov_p, centre_limit * lever), _max_sd(cov_c, centre_limit * lever))
+            if not sd <= centre_limit * lever:
                 identifiable = False
                 reason = (
-                    f"centre poorly determined: its standard deviation ({sd:.3g}) exceeds {SD_REL_MAX:.0%} of the "
+                    f"centre poorly determined: its standard deviation ({sd:.3g}) exceeds {centre_limit:.0%} of the "
                     f"lever arm ({lever:.3g}) once the frames' correlation is accounted for {why}; {advice}"
                 )
         return replace(sol, cov=cov, cov_parent=cov_p, cov_child=cov_c, identifiable=identifiable, reason=reason)
@@ -293,10 +296,11 @@ def solve_window(request: SolveRequest) -> SolveResult:
     scale = request.length_scale
     skin = "skin" in request.attachment
     white = _white_noise(request, (sigma_p, sigma_c)) if skin else None
+    centre_limit = SD_REL_MAX if skin else CENTRE_SD_REL_MAX  # (see CENTRE_SD_REL_MAX)
     sol: PoseSumsCentre | PoseSumsAxis
     if request.kind == "ball":
         W_bias = None if white is None else (white[0] ** 2 * Wp_unit, white[1] ** 2 * Wc_unit)
-        sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale, W_bias=W_bias)
+        sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale, W_bias=W_bias, sd_limit=centre_limit)
         c_p, c_c = sol.centre_parent, sol.centre_child
     else:
         sol = axis_from_pose_sums(sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction)
@@ -315,7 +319,7 @@ def solve_window(request: SolveRequest) -> SolveResult:
     if request.serial_correlation and lags.size and ss > 0.0:
         factor = integrated_factor(lags, lag_sums / counts / (ss / float(sums.n)), dt, float(sums.n), counts)
     if factor != 1.0:
-        sol = _inflated(sol, factor, factor * dt, scale)
+        sol = _inflated(sol, factor, factor * dt, scale, centre_limit)
     serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs, frame_interval_s=dt)
     if not skin:
         return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)

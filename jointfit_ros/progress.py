@@ -53,7 +53,7 @@ def coverage_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis) -> tup
             Wp, Wc = sigma_p**2 * Wp_unit, sigma_c**2 * Wc_unit
         except InputError:
             sums = None
-    cov = joint_coverage(sol, est.length_scale, sums, Wp, Wc)
+    cov = joint_coverage(sol, est.length_scale, sums, Wp, Wc, skin="skin" in est.attachment)
     values: dict[str, Any] = {"coverage (%)": _percent(cov.overall)}
     if cov.motion is not None:
         values["coverage: motion (%)"] = _percent(cov.motion)
