@@ -33,7 +33,7 @@ from .serial import (
     TimeLagSums,
 )
 from .stats import SlidingSums, WindowSpec
-from .white_noise_sums import SecondDifferences, white_noise_from_sums
+from .white_noise_sums import SecondDifferences
 
 __all__ = ["MOVING_DEG", "RelativePoseSums", "moving_seconds"]
 
@@ -357,9 +357,3 @@ class RelativePoseSums:
             return None
         s = self.window.sums
         return s[_SS : _SS + 4 : 2], s[_SS + 1 : _SS + 4 : 2]
-
-    def white_noise(self) -> tuple[float, float]:
-        """The window's white marker noise (parent, child), input units; NaN without frame triples (rigid: always)."""
-        if self.window is None:
-            return (float("nan"), float("nan"))
-        return white_noise_from_sums(self.window.sums[_WN])
