@@ -10,7 +10,8 @@ radius). The ratio of the two, the lever over the cluster's rms radius, is then 
 change to make the estimate less sensitive to the artefact (a larger cluster, or one nearer the
 joint): jointfit reports it per segment in ``/diagnostics`` and ``summary.json``.
 
-Typical values: a hip centre 200-300 mm from a thigh cluster of 50-70 mm rms radius gives 3-6;
+Typical values: a hip centre 200-300 mm from a thigh cluster of 50-100 mm rms radius gives 2-6 (the real right-hip
+trial of the tests: 2.64);
 from a pelvis cluster of ASIS/PSIS markers (~100 mm radius) 1-1.5.
 """
 
