@@ -685,6 +685,9 @@ def _headline(trace: JointTrace, unit: str) -> str:
         est += " (statistical +- (" + ", ".join(f"{v:.2g}" for v in _sd(stat.cov_parent)) + "); skin: with artefact)"
     elif isinstance(stat, PoseSumsAxis):
         est += f" (statistical {_angle_sd_deg(stat.cov_direction_parent):.2g} deg; skin: with artefact)"
+    levers = r.lever_ratios()  # the joint's distance from each marker cluster, in cluster radii (jointfit_core.lever)
+    if levers:
+        frames += "; lever / cluster radius " + ", ".join(f"{side} {v:.2g}" for side, v in levers.items())
     return f"{head}: {est}\n{frames}; {verdict}"
 
 

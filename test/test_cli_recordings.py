@@ -207,6 +207,10 @@ def test_real_hip_converted_and_fitted_without_marker_names(tmp_path: Path) -> N
     # every frame but those the joint-consistency test rejected (0.5 %: the hip's skin clusters jump at times)
     assert a["identifiable"] and a["frames_in_window"] == 1690 - a["gated"]["joint"]["frames"] == b["frames_in_window"]
     assert a["gated"]["joint"]["frames"] < 0.01 * 1690
+    # the unit-free lever ratios alike; the white noise in metres a thousandth of the millimetres
+    assert a["lever_ratio"] == b["lever_ratio"] and set(a["lever_ratio"]) == {"parent", "child"}
+    np.testing.assert_allclose([1000.0 * b["white_noise_sd"][k] for k in ("parent", "child")],
+                               [a["white_noise_sd"][k] for k in ("parent", "child")], rtol=1e-6)  # fmt: skip
 
 
 def test_a_label_the_file_lacks_is_one_line(tmp_path: Path, recording: tuple[Path, Any, Any],
