@@ -23,9 +23,14 @@ from numpy.typing import ArrayLike, NDArray
 from .checks import as_real_array
 from .errors import InputError
 
-__all__ = ["lever_ratio", "lever_ratios"]
+__all__ = ["lever_ratio", "lever_ratios", "rms_radius"]
 
 FloatArray = NDArray[np.float64]
+
+
+def rms_radius(points: FloatArray) -> float:
+    """Rms distance of points ``(P, 3)`` from their centroid (input units): a cluster's size."""
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
 
 
 def lever_ratio(template: ArrayLike, point: ArrayLike, direction: ArrayLike | None = None) -> float:
@@ -66,7 +71,7 @@ def lever_ratio(template: ArrayLike, point: ArrayLike, direction: ArrayLike | No
             raise InputError(f"direction: expected a non-zero finite (3,) vector, got {n!r}")
         n = n / norm
         lever = lever - n * float(n @ lever)
-    radius = float(np.sqrt(np.mean(np.sum((x - xbar) ** 2, axis=1))))
+    radius = rms_radius(x)
     return float(np.linalg.norm(lever)) / radius if radius > 0.0 else float("nan")
 
 

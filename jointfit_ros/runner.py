@@ -37,6 +37,7 @@ from jointfit_core.estimator import (
     virtual_markers_template,
 )
 from jointfit_core.hinge_from_sums import PoseSumsAxis
+from jointfit_core.lever import rms_radius
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .absurd_values import ABSURD_RADII, MarkerScreen, output_sane, unit_problem, workspace_limit
@@ -99,10 +100,6 @@ def _distance_errors(y: FloatArray, template: FloatArray) -> FloatArray:
     i, j = np.triu_indices(template.shape[0], 1)
     out: FloatArray = np.abs(np.linalg.norm(y[i] - y[j], axis=1) - np.linalg.norm(template[i] - template[j], axis=1))
     return out
-
-
-def _rms_radius(template: FloatArray) -> float:
-    return float(np.sqrt(((template - template.mean(axis=0)) ** 2).sum(axis=1).mean()))
 
 
 def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
@@ -339,7 +336,7 @@ class JointRunner:
         error = np.median(np.stack(self._layout_seen), axis=0)
         self._layout_seen = []
         sigma = max(self.estimator.noise_std)
-        tol = 0.2 * min(_rms_radius(t) for t in templates) + 6.0 * sigma  # type: ignore[arg-type]
+        tol = 0.2 * min(rms_radius(t) for t in templates) + 6.0 * sigma  # type: ignore[arg-type]
         if error.max() <= tol:
             return
         path = self.loaded_from
