@@ -35,13 +35,13 @@ from numpy.typing import ArrayLike, NDArray
 from .hinge_from_sums import PoseSumsAxis, _kq
 from .segments import (
     AXIS_SD_MAX_DEG,
-    CENTRE_SD_REL_MAX,
     NOISE_SNR_MIN,
     SD_REL_MAX,
     SINGULAR_REL,
     PoseSums,
     PoseSumsCentre,
     _motion,
+    centre_sd_limit,
 )
 
 __all__ = ["Coverage", "joint_coverage"]
@@ -155,7 +155,7 @@ def joint_coverage(
     if isinstance(solution, PoseSumsCentre):
         lever = max(float(np.linalg.norm(solution.centre_parent)), float(np.linalg.norm(solution.centre_child)),
                     length_scale)
-        limit_sq = ((SD_REL_MAX if skin else CENTRE_SD_REL_MAX) * lever) ** 2
+        limit_sq = (centre_sd_limit(skin) * lever) ** 2
         lam_p, V = _eig(solution.cov_parent)
         lam_c, _ = _eig(solution.cov_child)
         by = np.array([_fraction(limit_sq, float(v)) for v in lam_p[::-1]])

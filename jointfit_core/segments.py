@@ -62,6 +62,7 @@ __all__ = [
     "fit_axis_two_segments",
     "SINGULAR_REL",
     "CENTRE_SD_REL_MAX",
+    "centre_sd_limit",
     "SD_REL_MAX",
     "AXIS_SD_MAX_DEG",
     "SINGLE_AXIS_RATIO",
@@ -95,6 +96,15 @@ SD_REL_MAX = 0.1
 #: 230 mm lever for its closed form), against :data:`SD_REL_MAX`; they also wait
 #: for 2 s of movement (:data:`~jointfit_core.window_solve.SKIN_MIN_MOVEMENT_S`).
 CENTRE_SD_REL_MAX = 0.02
+
+
+def centre_sd_limit(skin: bool) -> float:
+    """The centre verdict's limit on its largest sd, as a fraction of the lever arm.
+
+    :data:`CENTRE_SD_REL_MAX`; skin markers' estimates (judged on their statistical part):
+    :data:`SD_REL_MAX` (see :data:`CENTRE_SD_REL_MAX`).
+    """
+    return SD_REL_MAX if skin else CENTRE_SD_REL_MAX
 #: A hinge direction whose largest standard deviation exceeds this many
 #: degrees is flagged as not identifiable.
 AXIS_SD_MAX_DEG = 5.0
@@ -1179,7 +1189,7 @@ def fit_centre_two_segments(
     v_parent, v_child = (cov_parent, cov_child) if stat is None else (stat[:3, :3], stat[3:, 3:])
     identifiable, reason = _centre_verdict(
         _motion_of(prep, Q), v_parent, v_child, c_p, c_c, prep.length_scale,
-        CENTRE_SD_REL_MAX if stat is None else SD_REL_MAX,
+        centre_sd_limit(stat is not None),
     )
     return SegmentsCentreFit(
         centre_parent=c_p,

@@ -40,11 +40,11 @@ from .joint_sums import (
 )
 from .segments import (
     AXIS_SD_MAX_DEG,
-    CENTRE_SD_REL_MAX,
     SD_REL_MAX,
     PoseSums,
     PoseSumsCentre,
     centre_from_pose_sums,
+    centre_sd_limit,
 )
 from .serial import (
     NOMINAL_RATE_HZ,
@@ -296,7 +296,7 @@ def solve_window(request: SolveRequest) -> SolveResult:
     scale = request.length_scale
     skin = "skin" in request.attachment
     white = _white_noise(request, (sigma_p, sigma_c)) if skin else None
-    centre_limit = SD_REL_MAX if skin else CENTRE_SD_REL_MAX  # (see CENTRE_SD_REL_MAX)
+    centre_limit = centre_sd_limit(skin)
     sol: PoseSumsCentre | PoseSumsAxis
     if request.kind == "ball":
         W_bias = None if white is None else (white[0] ** 2 * Wp_unit, white[1] ** 2 * Wc_unit)
