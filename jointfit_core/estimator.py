@@ -17,6 +17,7 @@ is :mod:`jointfit_core.joint_blocks`, its calibration file (:meth:`OnlineJoint.t
 from __future__ import annotations
 
 import itertools
+import math
 from typing import Any
 
 import numpy as np
@@ -229,10 +230,10 @@ class OnlineJoint:
         noise estimate exist, a segment whose markers, posed in its template
         frame, jump from its last passed frame by more than ``gate`` times
         its normal jump (:mod:`jointfit_core.gate`; or that fails the
-        residual test, rms residual above ``gate`` times the segment's pooled
-        pose-fit residual over the window, while moving more than usual; both
-        limits read again every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames and with
-        each estimate, :meth:`_gate_sigma`) loses its worst-fitting marker and is
+        residual test, rms residual above ``gate`` times the segment's own pooled
+        pose-fit residual, while moving more than usual; both limits read
+        again every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames,
+        :meth:`_gate_sigma`) loses its worst-fitting marker and is
         fitted again, down to 3 markers; if it still fails, the segment is
         not posed in that frame. Swapped labels, ghost markers and jumps are
         dropped before they reach the statistics or the per-frame output;
@@ -407,7 +408,7 @@ class OnlineJoint:
         # The outlier gate: frames are numbered as they arrive (see _arrive: its turn test's clock);
         # its limits are cached (_gate_var); each segment's memory is in its tracker.
         self._arrivals = 0
-        self._gate_key: tuple[float, int, int] | None = None
+        self._gate_key: tuple[float, int] | None = None
         self._gate_cache: FloatArray | None = None
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
@@ -666,14 +667,17 @@ class OnlineJoint:
         """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
 
         ``sigma``: :meth:`_gate_sigma`. None while the gate is off or there is no noise level
-        (fixed templates before any frame entered the statistics). Sets the segments'
+        (fixed templates before any frame posed the segments). Sets the segments'
         limits with it (:meth:`~jointfit_core.segment_tracker.SegmentTracker.set_limits`:
         the residual's, and ``gate^2`` times each segment's normal jump,
-        :class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again with each
-        estimate and every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames (per-frame cost; the update
-        and block paths then judge alike, :func:`~jointfit_core.joint_blocks.update_many` cutting its blocks there).
+        :class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again every
+        :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames, counted as they
+        arrive (per-frame cost; the update and block paths then judge alike,
+        :func:`~jointfit_core.joint_blocks.update_many` cutting its blocks there), and not
+        with the joint's estimates: the limits are the segments' own, so that joints sharing a
+        segment judge it alike.
         """
-        key = (self.gate, self._solved_version, self._arrivals // GATE_REFRESH_FRAMES)
+        key = (self.gate, self._arrivals // GATE_REFRESH_FRAMES)
         if key != self._gate_key:
             self._gate_key = key
             sigma = self._gate_sigma()
@@ -681,36 +685,37 @@ class OnlineJoint:
                 self._gate_cache = None
             else:
                 assert self._pose is not None
+                segs = (self._pose.parent, self._pose.child)
                 # noise-free data: sigmas of rounding would gate every frame
-                floor = GATE_SIGMA_FLOOR * self.length_scale
+                floor = GATE_SIGMA_FLOOR * np.array([seg.rms_radius for seg in segs])
                 s = np.maximum(sigma, floor)
                 self._gate_cache = np.square(self.gate * s)
-                for seg, sk, var in ((self._pose.parent, s[0], self._gate_cache[0]), (self._pose.child, s[1], self._gate_cache[1])):
-                    seg.set_limits(float(var), seg.shape.normal_jump(float(sk), floor), self.gate)
+                for seg, sk, var, fk in zip(segs, s, self._gate_cache, floor, strict=True):
+                    seg.set_limits(float(var), seg.shape.normal_jump(float(sk), float(fk)), self.gate)
         return self._gate_cache
 
     def _gate_sigma(self) -> FloatArray:
         """Per segment (2,), the residual level the gate's residual test holds (input units).
 
-        The window's pooled pose-fit residual ``sqrt(sum SS / sum dof)`` (what an estimate
-        reports as ``noise_std``: white noise, plus on skin markers the cluster's deformation),
-        read from the sums whether or not anything was solved; before a segment has any: the
-        latest estimate's noise (a calibration loaded), else the noise seen while building the
-        templates. A fixed ``noise_std`` is used as given.
+        Each segment's own pooled pose-fit residual
+        (:meth:`~jointfit_core.segment_tracker.SegmentTracker.pooled_level`: white noise, plus
+        on skin markers the cluster's deformation, over the frames that posed it, whatever the
+        other segment did); before a segment has any: the noise seen while building its
+        template, else the latest estimate's noise (a calibration loaded). A fixed
+        ``noise_std`` is used as given.
         """
         assert self._pose is not None
-        if self._solution is not None:
-            sigma = np.array(self._sigma, dtype=np.float64)
-        else:
-            sigma = np.array([self._pose.parent.template_sigma, self._pose.child.template_sigma])
-        noise = self._stats.noise_sums()
-        if noise is not None:
-            ss, dof = noise
-            pooled = dof > 0.0
-            sigma[pooled] = np.sqrt(np.maximum(ss[pooled], 0.0) / dof[pooled])
-        for k, fixed in enumerate(self._noise_arg):
-            if fixed is not None:
-                sigma[k] = fixed
+        sigma = np.zeros(2)
+        for k, seg in enumerate((self._pose.parent, self._pose.child)):
+            level = seg.pooled_level()
+            if self._noise_arg[k] is not None:
+                sigma[k] = float(self._noise_arg[k])  # type: ignore[arg-type]
+            elif level is not None:
+                sigma[k] = math.sqrt(max(level, 0.0))
+            elif seg.template_sigma > 0.0:
+                sigma[k] = seg.template_sigma
+            elif self._solution is not None:
+                sigma[k] = self._sigma[k]
         return sigma
 
     def _gated(
@@ -741,14 +746,14 @@ class OnlineJoint:
         stamp: float | None,
         frame_no: int,
         counted: tuple[bool, bool] = (False, False),
-        refit: bool = False,
+        refit: tuple[bool, bool] = (False, False),
     ) -> JointOutput | None:
         """Pose both segments from the pair's marker buffer ``Y`` (filled, ``missing`` rows NaN) and update the statistics.
 
         ``frame_no``: the frame's number (1-based count of the frames seen, for the gate's turn
         test). ``counted``: segments already counted as not posed for this frame (a refit after
-        the gate). ``refit``: the call after the gate left markers out (the frame's markers
-        before the gate are kept for the next frame's test by the first call only).
+        the gate). ``refit``: per segment, whether the gate left its markers out earlier in
+        this frame (this call refits them; :meth:`~jointfit_core.segment_pair.SegmentPair.judge`).
         """
         pose = self._pose
         assert pose is not None
@@ -766,11 +771,16 @@ class OnlineJoint:
         R, d, ss = poses(Y, ps)
         self.frame_poses = (R, d, (ps.parent is not None, ps.child is not None))  # a refit below replaces it
         gate_var = self._gate_var()
+        if gate_var is None and self.gate > 0.0:  # no level yet (fixed templates): the segments' own, to start from
+            for k, vs in enumerate((ps.parent, ps.child)):
+                if vs is not None:
+                    pose.tracker(k).add_level(float(ss[k]), vs.dof, frame_no)
         if gate_var is not None:
             verdict = pose.judge(ps, R, d, ss, frame_no, refit)
             if verdict is not None:
                 gated = self._gated(missing, ps, verdict, frame_no, stamp)
-                out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None), refit=True)
+                again = (refit[0] or verdict.failed[0], refit[1] or verdict.failed[1])
+                out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None), again)
                 pose.after_refit(ps, verdict, frame_no, refit)
                 return out
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:

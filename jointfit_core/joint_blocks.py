@@ -243,6 +243,12 @@ def _update_block(joint: OnlineJoint, yp: FloatArray, yc: FloatArray, st: FloatA
     if gate_var is not None:
         _gated_block(joint, Y, missing, slots, parent_ok, child_ok, st, gate_var, numbers)
         return
+    if joint.gate > 0.0:  # no level yet (fixed templates): frame by frame, the segments start their levels
+        for f in range(m):
+            pose.Y[...] = Y[f]
+            counted = (not bool(parent_ok[f]), not bool(child_ok[f]))
+            joint._add(missing[f], None if st is None else float(st[f]), int(numbers[f]), counted)
+        return
     entered = parent_ok & child_ok
     if joint._frozen:
         entered[:] = False
@@ -312,6 +318,7 @@ def _gated_block(
     # per segment: rows (positions in ``rows``) that pose it, oldest first
     seg_rows = [at[side == k] for k in range(2)]
     shapes: list[BlockJumps] = []  # per segment, the jumps of the rows that pose it
+    seg_levels: list[tuple[FloatArray, FloatArray, NDArray[np.int64]]] = []
     if rows.size:
         fields = pose.table()
         seg = 2 * slots[rows][at] + side  # each posed segment's row in the fields, (slot, side) flattened
@@ -321,6 +328,8 @@ def _gated_block(
         d.reshape(-1, 3)[posed] = ds
         ss.reshape(-1)[posed] = sss
         dof = fields[5].reshape(-1)[seg]
+        # per segment, its rows' residuals, degrees of freedom and frame numbers (its pooled level)
+        seg_levels = [(sss[side == k], dof[side == k], numbers[rows[seg_rows[k]]]) for k in range(2)]
         candidate = np.zeros(rows.size, dtype=bool)
         residual_bad = (sss > (1.0 - _SS_MARGIN) * gate_var[side] * dof) & (dof > 0.0)
         levels = np.divide(sss, dof, out=np.full(sss.shape, np.nan), where=dof > 0.0)  # per degree of freedom
@@ -373,7 +382,10 @@ def _gated_block(
                 if i >= 0 and seg[i] >= lo:
                     pose.tracker(k).set_reference(R[seg[i], k], d[seg[i], k], int(numbers[rows[seg[i]]]))
                 if shapes:
-                    shapes[k].passed(int(np.searchsorted(seg, lo)), i + 1)
+                    a = int(np.searchsorted(seg, lo))
+                    shapes[k].passed(a, i + 1)
+                    ss_k, dof_k, num_k = seg_levels[k]
+                    pose.tracker(k).add_levels(ss_k[a : i + 1], dof_k[a : i + 1], num_k[a : i + 1])
         if f == m:
             break
         pose.Y[...] = Y[f]

@@ -278,7 +278,7 @@ class SegmentPair:
         return self.parent if k == 0 else self.child
 
     def shape_tests(
-        self, ps: PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: bool
+        self, ps: PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: tuple[bool, bool]
     ) -> tuple[list[FloatArray | None], list[float], list[bool], list[bool]]:
         """Per segment of a posed frame: its markers in the template frame, its jump, whether it fails the gate and whether it moved as usual.
 
@@ -294,7 +294,7 @@ class SegmentPair:
                 seg = self.tracker(k)
                 n = vs.index.size
                 y = Y[k, :n] if n == seg.n_markers else Y[k, vs.index]  # all visible: its rows as they are
-                local[k], jumps[k], fails[k], usual[k] = seg.shape_test(y, vs, R[k], d[k], float(ss[k]), frame_no, refit)
+                local[k], jumps[k], fails[k], usual[k] = seg.shape_test(y, vs, R[k], d[k], float(ss[k]), frame_no, refit[k])
         return local, jumps, fails, usual
 
     def seen(self, ps: PairSet, local: list[FloatArray | None], frame_no: int) -> None:
@@ -303,7 +303,9 @@ class SegmentPair:
             if vs is not None and lk is not None:
                 self.tracker(k).shape.seen(vs.index, lk, frame_no, vs.code)
 
-    def judge(self, ps: PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: bool) -> GateVerdict | None:
+    def judge(
+        self, ps: PairSet, R: FloatArray, d: FloatArray, ss: FloatArray, frame_no: int, refit: tuple[bool, bool]
+    ) -> GateVerdict | None:
         """The outlier gate's per-segment tests of a posed frame: None when it passes (references moved on).
 
         Parameters
@@ -314,9 +316,11 @@ class SegmentPair:
             Both segments' poses and pose-fit residual sums of squares (:func:`poses`).
         frame_no : int
             The frame's number (the turn test's clock).
-        refit : bool
-            The call after the gate left markers out (the frame's markers before the gate are kept
-            for the next frame's test by the first call only).
+        refit : (bool, bool)
+            Per segment, whether the gate left its markers out earlier in this frame (this call is
+            a refit of them). A segment judged on all its markers is judged as if alone, whatever
+            the other did: two joints that share it then judge it alike. The frame's markers before
+            the gate are kept for the next frame's test by the first call only (neither set).
 
         Returns
         -------
@@ -326,7 +330,9 @@ class SegmentPair:
             more than :data:`~jointfit_core.segment_tracker.GATE_MAX_TURN_DEG` from its reference
             while its turn test is active and the turn is a relabelling or comes with a failed
             shape test (a rigid turn without either: the segment jumped, its reference starts
-            afresh). On a pass, each posed segment's turn and shape references move to this frame.
+            afresh). On a pass, each posed segment's turn and shape references move to this frame,
+            and its residual joins its pooled level
+            (:meth:`~jointfit_core.segment_tracker.SegmentTracker.add_level`).
         """
         local, jumps, fails, usual = self.shape_tests(ps, R, d, ss, frame_no, refit)
         active = (self.parent.turn_active(frame_no), self.child.turn_active(frame_no))
@@ -359,9 +365,10 @@ class SegmentPair:
                 seg.set_reference(R[k], d[k], frame_no)
                 # the residual test's recent level: frames that passed whole (not a refit's chosen subset)
                 # and moved as usual
-                level = float(ss[k]) / vs.dof if usual[k] and not refit and vs.dof > 0.0 else math.nan
+                level = float(ss[k]) / vs.dof if usual[k] and not refit[k] and vs.dof > 0.0 else math.nan
                 seg.shape.passed(vs.index, lk, frame_no, jumps[k], vs.code, level)
-        if not refit:
+                seg.add_level(float(ss[k]), vs.dof, frame_no)
+        if not (refit[0] or refit[1]):
             self.seen(ps, local, frame_no)
         return None
 
@@ -391,7 +398,7 @@ class SegmentPair:
                 held.append((k, len(drop)))
         return out, held
 
-    def after_refit(self, ps: PairSet, verdict: GateVerdict, frame_no: int, refit: bool) -> None:
+    def after_refit(self, ps: PairSet, verdict: GateVerdict, frame_no: int, refit: tuple[bool, bool]) -> None:
         """After the refit of a frame that failed: references follow a swap, the failed shapes are kept provisionally.
 
         A segment held out whose markers are its reference's relabelled (a swap): its turn
@@ -404,5 +411,5 @@ class SegmentPair:
             lk = verdict.local[k]
             if verdict.failed[k] and vs is not None and lk is not None:
                 self.tracker(k).shape.failed(vs.index, lk, frame_no, vs.code)  # provisional reference
-        if not refit:
+        if not (refit[0] or refit[1]):
             self.seen(ps, verdict.local, frame_no)

@@ -32,6 +32,7 @@ from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local
 from .segments import POSE_VAR_RATIO_MAX
 
 __all__ = [
+    "GATE_LEVEL_HALF_LIFE",
     "GATE_MAX_TURN_DEG",
     "GATE_REFRESH_FRAMES",
     "GATE_RELOCK_FRAMES",
@@ -71,6 +72,16 @@ GATE_RELOCK_FRAMES = 500
 #: shrinks with the joint angles, and without estimates (a whole recording in one block, the node's first
 #: seconds) limits frozen at the template frames' noise would hold a deforming cluster's markers out for good.
 GATE_REFRESH_FRAMES = 50
+
+#: Outlier gate: the half-life (frames, counted as they arrive) of each segment's own pooled pose-fit
+#: residual, the level its residual test holds (:meth:`SegmentTracker.pooled_level`). The segment's,
+#: not its joint's window: two joints that share a segment (the hip's and the knee's thigh) then judge
+#: its markers against the same level and gate them alike, whatever frames each joint's statistics
+#: took. 2000 frames: 200 new frames weigh 7 % of the level, as in a full 3000-frame window (30 s at 100 Hz).
+GATE_LEVEL_HALF_LIFE = 2000
+
+#: Per-frame decay of :meth:`SegmentTracker.pooled_level`'s sums.
+_LEVEL_DECAY = 0.5 ** (1.0 / GATE_LEVEL_HALF_LIFE)
 
 #: ``cos(GATE_MAX_TURN_DEG)``: a turn test fails below it.
 COS_MAX_TURN = float(np.cos(np.deg2rad(GATE_MAX_TURN_DEG)))
@@ -154,6 +165,11 @@ class SegmentTracker:
         self.jump_limit = np.inf
         self._jump_low = np.inf
         self._gate2 = np.inf  # gate^2 (set_limits)
+        # pooled_level: the decayed sums of squared pose-fit residuals and of degrees of freedom of the
+        # frames that posed the segment, and the number of the frame they were last decayed to
+        self._level_ss = 0.0
+        self._level_dof = 0.0
+        self._level_at = 0
 
     # ------------------------------------------------------------------ template and visibility
 
@@ -245,6 +261,41 @@ class SegmentTracker:
         return out
 
     # ------------------------------------------------------------------ the outlier gate
+
+    def add_level(self, ss: float, dof: float, frame_no: int) -> None:
+        """Pool a frame's pose-fit residual: sum of squares ``ss`` (input units squared) over ``dof`` degrees of freedom.
+
+        Frames that posed the segment after the gate (whole or the markers it kept), numbered
+        as they arrive (increasing); see :meth:`pooled_level`.
+        """
+        if dof <= 0.0:
+            return
+        w = _LEVEL_DECAY ** (frame_no - self._level_at)
+        self._level_ss = self._level_ss * w + ss
+        self._level_dof = self._level_dof * w + dof
+        self._level_at = frame_no
+
+    def add_levels(self, ss: FloatArray, dof: FloatArray, numbers: NDArray[np.int64]) -> None:
+        """:meth:`add_level` of a run of frames: ``ss``, ``dof`` and ``numbers`` (K,), oldest first."""
+        keep = dof > 0.0
+        if not keep.any():
+            return
+        ss, dof, numbers = ss[keep], dof[keep], numbers[keep]
+        last = int(numbers[-1])
+        w = _LEVEL_DECAY ** (last - numbers).astype(np.float64)
+        old = _LEVEL_DECAY ** (last - self._level_at)
+        self._level_ss = self._level_ss * old + float(w @ ss)
+        self._level_dof = self._level_dof * old + float(w @ dof)
+        self._level_at = last
+
+    def pooled_level(self) -> float | None:
+        """The segment's pooled pose-fit residual, mean square per degree of freedom (input units squared), or None.
+
+        ``sum w SS / sum w dof`` over the frames that posed it (:meth:`add_level`), each
+        weighted by its age, half-life :data:`GATE_LEVEL_HALF_LIFE` frames: white noise, plus
+        on skin markers the cluster's deformation. None before any such frame.
+        """
+        return self._level_ss / self._level_dof if self._level_dof > 0.0 else None
 
     def set_limits(self, residual_limit: float, normal_jump: float, gate: float) -> None:
         """The gate's limits: ``residual_limit`` = ``(gate sigma)^2`` per degree of freedom; the jump's from ``normal_jump``.

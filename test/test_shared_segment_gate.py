@@ -1,10 +1,12 @@
 """Issue 16: two joints that share a segment (the hip's thigh is the knee's thigh) gate it in the same frames.
 
-Today each joint judges its own copy of the segment (its own gate limits, from its own window);
-these streams check whether the two copies agree: the frames in which each gated the thigh, and the
-markers they left out, on a skin-artefact lower body with occlusions and a 2 s label swap on the
-right thigh, solved every 0.1 s as the node does. The joint test (the relative pose of the joint's
-two segments) is the joint's own and may differ.
+Each joint holds its own copy of the segment's tracker; the gate's limits are the segment's own
+(its pooled residual, :meth:`~jointfit_core.segment_tracker.SegmentTracker.pooled_level`) and a
+segment judged on all its markers is judged whatever the joint's other segment did, so the two
+copies must agree. These streams check that they do, frame by frame: the thigh's pose, the frames
+in which each gated it, the markers they left out and the counters, on a skin-artefact lower body
+with occlusions and a 2 s label swap on the right thigh, solved every 0.1 s as the node does. The
+joint test (the relative pose of the joint's two segments) is the joint's own and may differ.
 """
 
 from __future__ import annotations
@@ -24,21 +26,7 @@ from jointfit_ros.runner import JointRunner
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "lower_body.yaml"
 
 
-@pytest.mark.parametrize(
-    "seed",
-    [
-        1,
-        pytest.param(
-            3,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="known defect (issue 16): two copies of one segment, two gates: in frames 841-845 of the swap "
-                "the hip left thigh markers out that the knee took (94 against 89 markers); one tracker per "
-                "segment is the fix. Passing (strict xfail fails) means it was fixed: then drop the xfail.",
-            ),
-        ),
-    ],
-)
+@pytest.mark.parametrize("seed", [1, 2, 3])
 def test_the_hip_and_the_knee_gate_their_shared_thigh_alike(seed: int) -> None:
     sk = make_skeleton("lower", seed=seed)
     t = np.arange(1200) / 100.0
@@ -52,23 +40,34 @@ def test_the_hip_and_the_knee_gate_their_shared_thigh_alike(seed: int) -> None:
     for r in runners:
         r.estimator.gate_log = []
     router = MessageRouter(cfg, runners)
+    by = {r.cfg.name: r.estimator for r in runners}
+    pairs = [(by[f"{side}_hip"], by[f"{side}_knee"]) for side in ("r", "l")]
+    compared = 0
     for k, (tk, f) in enumerate(zip(t, frames, strict=True)):
         router.markers(pose_array_bytes(10**12 + round(tk * 1e9), "world", f))
+        for h, kn in pairs:  # this frame: the same thigh pose and the same counters from both joints
+            assert h.gated_frames[1] == kn.gated_frames[0], k
+            hp, kp = h.frame_poses, kn.frame_poses
+            if hp is not None and kp is not None and hp[2][1] and kp[2][0]:
+                np.testing.assert_allclose(hp[0][1], kp[0][0], rtol=0, atol=1e-12)
+                np.testing.assert_allclose(hp[1][1], kp[1][0], rtol=0, atol=1e-12)
+                compared += 1
         router.after_outputs()
         if k % 10 == 9:
             for r in runners:
                 r.estimate(force=True)
-    by = {r.cfg.name: r.estimator for r in runners}
+    assert compared > 1500  # both joints posed the thigh in most frames of both legs
     swapped = 0
-    for side in ("r", "l"):
-        h, k = by[f"{side}_hip"], by[f"{side}_knee"]
-        assert h.gate_log is not None and k.gate_log is not None
+    for side, (h, kn) in zip(("r", "l"), pairs, strict=True):
+        assert h.gate_log is not None and kn.gate_log is not None
         hip_frames = sorted(f for f, s, _ in h.gate_log if s == 1)
-        knee_frames = sorted(f for f, s, _ in k.gate_log if s == 0)
+        knee_frames = sorted(f for f, s, _ in kn.gate_log if s == 0)
         assert hip_frames == knee_frames, side
-        assert h.gated_frames[1] == k.gated_frames[0]
         for what in ("gated", "gated_markers"):
-            assert h.dropped.get(f"child_{what}", 0) == k.dropped.get(f"parent_{what}", 0), (side, what)
+            assert h.dropped.get(f"child_{what}", 0) == kn.dropped.get(f"parent_{what}", 0), (side, what)
         if side == "r":
             swapped = sum(700 <= f - 1 < 900 for f in hip_frames)
-    assert swapped > 150  # not vacuous: the swap was gated, by both
+    # not vacuous: both gated the swap, in 54 (seed 2) to 213 (seed 1) of its 200 frames (frames with
+    # markers left out count); the rest got in, by both joints alike, once the deforming cluster's
+    # residual level had risen with the leave-out refits that kept one swapped marker
+    assert swapped > 40
