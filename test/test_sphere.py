@@ -318,3 +318,41 @@ def test_float32_signalling_nan_is_missing() -> None:
     quiet[3, 1, 0] = np.nan
     assert fit.n_frames == 20
     np.testing.assert_array_equal(fit.centre, fit_centre(quiet).centre)
+
+
+def _small_arc(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """3-5 markers at 80-400 mm from a centre, 20-400 frames of a 2-40 deg swing, 0.3-2 mm noise."""
+    n_markers, n_frames = int(rng.integers(3, 6)), int(rng.integers(20, 400))
+    radius = rng.uniform(80.0, 400.0)
+    x0 = rng.normal(size=(n_markers, 3))
+    x0 *= radius * rng.uniform(0.7, 1.0, (n_markers, 1)) / np.linalg.norm(x0, axis=1, keepdims=True)
+    amp = np.radians(rng.uniform(2.0, 40.0))
+    t = np.linspace(0.0, 1.0, n_frames)
+    waves = [np.sin(2.0 * np.pi * t * rng.uniform(0.3, 1.5) + phase) for phase in (0.0, 1.0)]
+    rotvec = np.stack([amp * waves[0], amp * rng.uniform(0.1, 1.0) * waves[1], 0.3 * amp * np.sin(2.0 * np.pi * t)], axis=1)
+    centre = rng.normal(0.0, 50.0, 3)
+    markers = np.einsum("nij,pj->npi", Rotation.from_rotvec(rotvec).as_matrix(), x0) + centre
+    return markers + rng.normal(0.0, rng.uniform(0.3, 2.0), markers.shape), centre
+
+
+def test_small_arcs_the_verdict_calls_identifiable_are_calibrated() -> None:
+    """Short swings, where the linearised covariance stops holding: the verdict withholds those fits.
+
+    Of 3000 such arcs (2026-12-03), the 2635 called identifiable had mean e/3 0.97, 2.8 % above 3
+    and none above 9, at every sd / radius up to the largest (0.045); all fits, those withheld
+    included, had mean e/3 2.0-3.5 at sd / radius 0.03-0.10.
+    """
+    rng = np.random.default_rng(2026)
+    kept: list[float] = []
+    withheld: list[float] = []
+    for _ in range(400):
+        markers, centre = _small_arc(rng)
+        try:
+            fit = fit_centre(markers)
+        except NotIdentifiableError:
+            continue
+        (kept if fit.identifiable else withheld).append(mahalanobis(fit.centre - centre, fit.cov))
+    assert len(kept) >= 300 and len(withheld) >= 20
+    mc_band(kept)
+    assert np.mean(np.array(kept) > 3.0) < 0.06 and max(kept) < 12.0
+    assert np.mean(withheld) > 1.5  # not vacuous: what the verdict withholds is over-confident
