@@ -30,14 +30,15 @@ Without a reference (fewer than 3 visible markers with one: the first frame
 after the templates, after a reset) the residual test decides, as it did
 before this module, and a failing frame becomes a provisional reference until
 one passes (so a ghost in that frame cannot lock the segment out). Its level
-is the window's pooled pose-fit residual (on skin markers: the noise plus the
-cluster's deformation), read again every
+is the segment's own pooled pose-fit residual
+(:meth:`~jointfit_core.segment_tracker.SegmentTracker.pooled_level`; on skin markers: the noise
+plus the cluster's deformation), read again every
 :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames, so that a marker
 back from an occlusion, with no recent reference, is judged against the
 deformation the cluster normally shows, not the template frames' noise. The
 limit is at least ``gate^2`` times the segment's own recent level
 (:data:`GATE_RESIDUAL_RECENT`), so that the first movement after a still
-stance, whose deformation the stance-filled window has not seen, is judged
+stance, whose deformation the stance-filled level has not seen, is judged
 against what the cluster showed a few frames before.
 
 Templates (:func:`consistent_frames`): frames are split at sudden changes of

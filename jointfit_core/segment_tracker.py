@@ -68,9 +68,9 @@ GATE_TURN_GAP_FRAMES = 10
 GATE_RELOCK_FRAMES = 500
 
 #: Outlier gate: its limits (residual level and normal jump of each segment, :meth:`SegmentTracker.set_limits`)
-#: are read again every this many frames, and with every estimate: a skin cluster's deformation grows and
-#: shrinks with the joint angles, and without estimates (a whole recording in one block, the node's first
-#: seconds) limits frozen at the template frames' noise would hold a deforming cluster's markers out for good.
+#: are read again every this many frames (counted as they arrive, whether or not anything is solved): a skin
+#: cluster's deformation grows and shrinks with the joint angles, and limits frozen at the template frames'
+#: noise would hold a deforming cluster's markers out for good.
 GATE_REFRESH_FRAMES = 50
 
 #: Outlier gate: the half-life (frames, counted as they arrive) of each segment's own pooled pose-fit
@@ -311,7 +311,7 @@ class SegmentTracker:
     def residual_bound(self) -> float:
         """The residual test's limit now: mean squared residual per degree of freedom (input units squared).
 
-        :attr:`residual_limit` (``gate^2`` times the window's pooled residual level), or ``gate^2``
+        :attr:`residual_limit` (``gate^2`` times the segment's pooled residual level), or ``gate^2``
         times the segment's recent level (:meth:`~jointfit_core.gate.ShapeTrack.recent_residual`,
         :data:`~jointfit_core.gate.GATE_RESIDUAL_RECENT`) when that is larger: a skin cluster's
         deformation, which grows smoothly when the joint starts to move after a still stance,
