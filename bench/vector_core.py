@@ -20,7 +20,10 @@ does not grow with the joints:
     :meth:`~jointfit_core.segment_tracker.SegmentTracker.shape_test` (the jump against the stacked
     shape references, aligned first where they come from another marker set, as
     :func:`~jointfit_core.gate.frame_jumps`), the turn test, and on a pass the references' update;
-    the gate's limits refreshed every ``GATE_REFRESH_FRAMES`` frames and after each estimate. A unit
+    the gate's limits refreshed every ``GATE_REFRESH_FRAMES`` frames from each unit's own pooled
+    residual (:meth:`~jointfit_core.segment_tracker.SegmentTracker.pooled_level`, updated on a pass;
+    since 2026-12-03 a segment's, not its joint's window's, so the shared mode decides as the
+    current path does). A unit
     that would fail (or turn) is *flagged* for a slow path that is not implemented (counted);
 (d) **joint**: all J relative poses ``[Q | t]`` in one matmul and the joint test's scores
     (:class:`~jointfit_core.joint_gate.JointTrack`), its references' update;
@@ -111,6 +114,7 @@ from jointfit_core.pose import skew
 from jointfit_core.quaternion_fit import HORN_A, HORN_B
 from jointfit_core.segment_pair import _eigh
 from jointfit_core.segment_tracker import (
+    _LEVEL_DECAY,
     COS_MAX_TURN,
     GATE_RELOCK_FRAMES,
     GATE_TURN_GAP_FRAMES,
@@ -230,7 +234,6 @@ class VectorSkeleton:
         self.kidx = np.arange(self.K)
         self.jidx = np.arange(self.J)
         self.trackers: list[SegmentTracker] = [self._tracker(j, s) for j, s in units]
-        self.refresh = np.ones(self.J, dtype=bool)  # the joints whose units' gate limits are due
         self._init_units()
         self._init_joints()
         self.frame_no = self.est[0]._arrivals
@@ -287,7 +290,12 @@ class VectorSkeleton:
         self.scale = np.array([ABSURD_RADII * self.est[j].length_scale for j, _ in self.units])[:, None]
         self.owner = np.array([j for j, _ in self.units])
         self.side = np.array([side for _, side in self.units])
-        self.unit_floor = np.array([GATE_SIGMA_FLOOR * self.est[j].length_scale for j, _ in self.units])
+        self.unit_floor = np.array([GATE_SIGMA_FLOOR * tr.rms_radius for tr in self.trackers])
+        self.template_sigma = np.array([tr.template_sigma for tr in self.trackers])
+        # each unit's pooled residual (SegmentTracker.add_level): decayed sums and the frame they were decayed to
+        self.lvl_ss = np.array([tr._level_ss for tr in self.trackers])
+        self.lvl_dof = np.array([tr._level_dof for tr in self.trackers])
+        self.lvl_at = np.array([tr._level_at for tr in self.trackers], dtype=np.int64)
         self.unit_gate = np.array([self.est[j].gate for j, _ in self.units])
         self.unit_sigma = np.array([self.est[j]._sigma[side] for j, side in self.units])
 
@@ -387,7 +395,6 @@ class VectorSkeleton:
         """
         e = self.est[j]
         sol = e.solution
-        self.refresh[j] = True
         if hasattr(self, "unit_sigma"):
             self.unit_sigma[self.owner == j] = np.array(e._sigma)[self.side[self.owner == j]]
         length = e.length_scale
@@ -489,15 +496,13 @@ class VectorSkeleton:
         ones take them).
         """
         block = self.frame_no // GATE_REFRESH_FRAMES
-        if block != self.gate_block:
-            self.gate_block = block
-            self.refresh[:] = True
-        due = self.refresh[self.owner]
-        if not due.any():
+        if block == self.gate_block:
             return
-        ss = self.sums[self.owner, _SS + 2 * self.side]
-        dof = self.sums[self.owner, _SS + 2 * self.side + 1]
-        sigma = np.where(dof > 0.0, np.sqrt(np.maximum(ss, 0.0) / np.where(dof > 0.0, dof, 1.0)), self.unit_sigma)
+        self.gate_block = block
+        due = np.ones(self.K, dtype=bool)
+        ss, dof = self.lvl_ss, self.lvl_dof
+        fallback = np.where(self.template_sigma > 0.0, self.template_sigma, self.unit_sigma)
+        sigma = np.where(dof > 0.0, np.sqrt(np.maximum(ss, 0.0) / np.where(dof > 0.0, dof, 1.0)), fallback)
         s = np.maximum(sigma, self.unit_floor)
         if (self.hist_n == GATE_HISTORY_FRAMES).all():
             a = np.sqrt(self.hist)
@@ -518,7 +523,6 @@ class VectorSkeleton:
         np.copyto(self.res_limit, (self.unit_gate * s) ** 2, where=due)
         np.copyto(self.jump_limit, self.unit_gate**2 * normal, where=due)
         np.copyto(self.jump_low, GATE_JUMP_LOW * normal, where=due)
-        self.refresh[:] = False
 
     def _jumps(self, local: FloatArray, vis: BoolArray, ref: FloatArray, at: IntArray, rcode: IntArray) -> tuple[FloatArray, BoolArray]:
         """:func:`~jointfit_core.gate.frame_jumps` of this frame's units (aligned references only where needed)."""
@@ -570,6 +574,11 @@ class VectorSkeleton:
         np.copyto(self.last_local, local, where=vis[:, :, None])  # (vis: posed units' visible markers)
         np.copyto(self.last_at, self.frame_no, where=vis)
         np.copyto(self.last_code, code, where=vis)
+        pool = np.flatnonzero(ok & (self.G[:, _DOF] > 0.0))  # SegmentTracker.add_level of the units that passed
+        w = _LEVEL_DECAY ** (self.frame_no - self.lvl_at[pool]).astype(np.float64)
+        self.lvl_ss[pool] = self.lvl_ss[pool] * w + self.ss[pool]
+        self.lvl_dof[pool] = self.lvl_dof[pool] * w + self.G[pool, _DOF]
+        self.lvl_at[pool] = self.frame_no
         keep = np.flatnonzero(ok & ~inf)
         self.hist[keep, self.hist_pos[keep]] = jump[keep]
         self.hist_pos[keep] = (self.hist_pos[keep] + 1) % GATE_HISTORY_FRAMES
@@ -897,19 +906,24 @@ class _Diff:
         self.own[name] = max(self.own.get(name, 0.0), own)
         self.count[name] = self.count.get(name, 0) + 1
 
+    def table(self) -> str:
+        """The differences as a Markdown table."""
+        header = ["quantity", "comparisons", "largest difference", "largest value", "relative to it", "largest value-wise relative"]
+        return markdown_table(header, self.rows(), "lrrrrr")
+
     def rows(self) -> list[list[str]]:
         return [[k, f"{self.count[k]}", f"{self.diff[k]:.2g}", f"{self.scale[k]:.3g}",
                  f"{self.diff[k] / self.scale[k] if self.scale[k] else 0.0:.2g}", f"{self.own[k]:.2g}"]
                 for k in self.diff]  # fmt: skip
 
 
-def check(frames: int) -> tuple[_Diff, dict[str, int], int, int]:
-    """The 12-joint prototype (exact mode) against the current path on the same messages (see the module docstring)."""
+def check(frames: int, shared: bool = False) -> tuple[_Diff, dict[str, int], int, int]:
+    """The 12-joint prototype (exact mode, or ``shared``: one unit per segment) against the current path on the same messages (see the module docstring)."""
     messages = _stream(WARM + frames)
     sk = make_skeleton("full", seed=0)
     cfg = node_config(skeleton_parameters(sk, sk.joints[:12]))
     path = _Path(cfg, messages[:WARM])
-    vec = VectorSkeleton(path, shared=False)
+    vec = VectorSkeleton(path, shared=shared)
     diff = _Diff()
     names = [r.cfg.name for r in path.runners]
     bytes_same = bytes_total = 0
@@ -1055,6 +1069,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     commit = _commit()
     host = machine()
     diff, flags_check, bytes_same, bytes_total = check(check_frames)
+    diff_sh, flags_sh, same_sh, total_sh = check(check_frames, shared=True)
     # one continuous stream: per round a chunk timed whole and a chunk timed stage by stage (every path and
     # prototype sees every frame, in order), then the frames of the calls count
     messages = _stream(WARM + 2 * per_round * rounds + CALL_FRAMES)
@@ -1149,8 +1164,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"current path's values. Encoded messages: {bytes_same} of {bytes_total} byte-identical (headers all "
         f"identical; the float fields compared below). Flags during the check: {flags_check}.",
         "",
-        markdown_table(["quantity", "comparisons", "largest difference", "largest value", "relative to it",
-                        "largest value-wise relative"], diff.rows(), "lrrrrr"),
+        diff.table(),
+        "",
+        f"## Correctness: shared mode (one unit per body segment, the issue's design) against the current path, 12 joints, {check_frames} frames",
+        "",
+        "The current path still holds one copy of a shared segment per joint; since 2026-12-03 the copies judge it "
+        "against the segment's own level and decide alike (`test/test_shared_segment_gate.py`), so one unit per "
+        f"segment must give the same. Encoded messages: {same_sh} of {total_sh} byte-identical. Flags during the "
+        f"check: {flags_sh}.",
+        "",
+        diff_sh.table(),
         "",
     ])  # fmt: skip
     print(text)
