@@ -71,3 +71,38 @@ def test_the_hip_and_the_knee_gate_their_shared_thigh_alike(seed: int) -> None:
     # markers left out count); the rest got in, by both joints alike, once the deforming cluster's
     # residual level had risen with the leave-out refits that kept one swapped marker
     assert swapped > 40
+
+
+def test_the_block_path_gates_the_shared_thigh_alike_and_as_frame_by_frame() -> None:
+    """``jointfit fit``'s blocks (MessageRouter.markers_many): the same gate log for both copies, and the frame path's."""
+    seed = 3
+    sk = make_skeleton("lower", seed=seed)
+    t = np.arange(1200) / 100.0
+    frames = skeleton_skin_frames(sk, t, np.random.default_rng(seed), sta_amplitudes(sk), noise=0.0005, occlusion=0.01)
+    cfg = node_config(params_from_file(CONFIG))
+    names = sk.marker_names()
+    hip = next(j for j in cfg.joints if j.name == "r_hip")
+    a, b = (names.index(m) for m in hip.child_markers[:2])
+    frames[700:900, [a, b]] = frames[700:900, [b, a]]
+    raws = [pose_array_bytes(10**12 + round(tk * 1e9), "world", f) for tk, f in zip(t, frames, strict=True)]
+    logs = []
+    for block in (1, 100):
+        runners = [JointRunner(j, cfg) for j in cfg.joints]
+        for r in runners:
+            r.estimator.gate_log = []
+        router = MessageRouter(cfg, runners)
+        for start in range(0, len(raws), block):
+            if block == 1:
+                router.markers(raws[start])
+                router.after_outputs()
+            else:
+                router.markers_many(raws[start : start + block])
+        by = {r.cfg.name: r.estimator for r in runners}
+        h, kn = by["r_hip"], by["r_knee"]
+        assert h.gate_log is not None and kn.gate_log is not None
+        hip_frames = sorted(f for f, s, _ in h.gate_log if s == 1)
+        assert hip_frames == sorted(f for f, s, _ in kn.gate_log if s == 0), block
+        assert h.dropped.get("child_gated_markers", 0) == kn.dropped.get("parent_gated_markers", 0), block
+        logs.append(hip_frames)
+    assert logs[0] == logs[1]
+    assert sum(700 <= f - 1 < 900 for f in logs[0]) > 40  # not vacuous: the swap was gated
