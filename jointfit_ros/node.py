@@ -733,6 +733,13 @@ def main(args: list[str] | None = None) -> None:
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGINT / SIGTERM while the node was starting: rclpy's handler shut the context down under
+        # it, and whatever rcl call came next failed (e.g. "error creating node: the given context is
+        # not valid"); that is the stop asked for, not an error
+        print("jointfit_node: stopped while starting", file=sys.stderr)
     finally:
         if node is not None:
             node.destroy_node()
