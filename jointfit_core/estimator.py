@@ -233,11 +233,14 @@ class OnlineJoint:
         residual test, rms residual above ``gate`` times the segment's own pooled
         pose-fit residual, while moving more than usual; both limits read
         again every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames,
-        :meth:`_gate_sigma`) loses its worst-fitting marker and is
+        :meth:`_gate_sigma`) has its labels put right when its markers are
+        its reference's under other labels (a swap,
+        :meth:`~jointfit_core.segment_pair.SegmentPair.relabel`,
+        :attr:`relabelled_frames`), else loses its worst-fitting marker and is
         fitted again, down to 3 markers; if it still fails, the segment is
-        not posed in that frame. Swapped labels, ghost markers and jumps are
-        dropped before they reach the statistics or the per-frame output;
-        smooth skin deformation passes (see Notes, :attr:`gated_frames`).
+        not posed in that frame. Ghost markers and jumps are dropped before
+        they reach the statistics or the per-frame output; smooth skin
+        deformation passes (see Notes, :attr:`gated_frames`).
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -468,6 +471,13 @@ class OnlineJoint:
             0 if self._pose is None else self._pose.parent.gated_frames,
             0 if self._pose is None else self._pose.child.gated_frames,
         )
+
+    @property
+    def relabelled_frames(self) -> tuple[int, int]:
+        """Frames in which the parent's and the child's labels were found swapped and put right (not held out)."""
+        if self._pose is None:
+            return (0, 0)
+        return (self._pose.parent.relabelled_frames, self._pose.child.relabelled_frames)
 
     @property
     def noise_std(self) -> tuple[float, float]:
@@ -747,6 +757,7 @@ class OnlineJoint:
         frame_no: int,
         counted: tuple[bool, bool] = (False, False),
         refit: tuple[bool, bool] = (False, False),
+        relabelled: bool = False,
     ) -> JointOutput | None:
         """Pose both segments from the pair's marker buffer ``Y`` (filled, ``missing`` rows NaN) and update the statistics.
 
@@ -754,6 +765,8 @@ class OnlineJoint:
         test). ``counted``: segments already counted as not posed for this frame (a refit after
         the gate). ``refit``: per segment, whether the gate left its markers out earlier in
         this frame (this call refits them; :meth:`~jointfit_core.segment_pair.SegmentPair.judge`).
+        ``relabelled``: the call after the gate put a swap's labels right
+        (:meth:`~jointfit_core.segment_pair.SegmentPair.relabel`; not tried again).
         """
         pose = self._pose
         assert pose is not None
@@ -778,6 +791,11 @@ class OnlineJoint:
         if gate_var is not None:
             verdict = pose.judge(ps, R, d, ss, frame_no, refit)
             if verdict is not None:
+                fix = None if relabelled or refit[0] or refit[1] else pose.relabel(missing, ps, verdict, frame_no)
+                if fix is not None:  # a swap put right: the frame judged again with all its markers
+                    if self.gate_log is not None:
+                        self.gate_log.extend((frame_no, k, np.nan if stamp is None else stamp) for k in fix[1])
+                    return self._add(fix[0], stamp, frame_no, (ps.parent is None, ps.child is None), relabelled=True)
                 gated = self._gated(missing, ps, verdict, frame_no, stamp)
                 again = (refit[0] or verdict.failed[0], refit[1] or verdict.failed[1])
                 out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None), again)

@@ -501,18 +501,25 @@ class BlockJumps:
             np.where(usual, self.residuals[lo:hi], np.nan),
         )
 
-    def recheck(self, i: int, margin: float) -> NDArray[np.intp]:
-        """Frame ``i`` went one by one: the later frames (positions) that may now fail (none if it passed whole)."""
+    def recheck(self, i: int, margin: float, relabelled: bool = False) -> NDArray[np.intp]:
+        """Frame ``i`` went one by one: the later frames (positions) that may now fail (none if it passed whole).
+
+        ``relabelled``: the gate put the frame's labels right, so its references are not the
+        markers as the block saw them, even where it passed with all of them.
+        """
         vis = self.vis[i]
-        if (self.track.at[vis] == self.numbers[i]).all():
+        if not relabelled and (self.track.at[vis] == self.numbers[i]).all():
             return np.zeros(0, dtype=np.intp)  # its markers are the references, as supposed
         later = self.vis[i + 1 :]
         if not later.shape[0]:
             return np.zeros(0, dtype=np.intp)
         nxt = np.where(later.any(axis=0), np.argmax(later, axis=0), later.shape[0] - 1)
-        part = slice(i + 1, i + 2 + int(nxt[vis].max()))
+        part = slice(i + 1, i + 2 + int((nxt if relabelled else nxt[vis]).max()))
         loc, vis_p, num = self.local[part], self.vis[part], self.numbers[part]
         self.jump[part], self.stale[part] = frame_jumps(loc, vis_p, *self.track.block_references(loc, vis_p, num), num)
+        if relabelled:  # the frame seen is the relabelled one too (the jump from the previous frame)
+            last = self.track.block_references(loc, vis_p, num, last=True)
+            self.jump_last[part] = frame_jumps(loc, vis_p, *last, num)[0]
         out: NDArray[np.intp] = i + 1 + np.flatnonzero(self.fails(margin, part))
         return out
 

@@ -401,7 +401,8 @@ def _gated_block(
                     heapq.heappush(queue, g)
                     queued.add(g)
             if shapes and i > 0 and seg[i - 1] == after - 1:  # frame f posed segment k
-                for j in shapes[k].recheck(i - 1, _SS_MARGIN).tolist():
+                relabelled = pose.tracker(k).relabelled_at == int(numbers[f])
+                for j in shapes[k].recheck(i - 1, _SS_MARGIN, relabelled).tolist():
                     g = int(rows[seg[j]])
                     if g not in queued:
                         heapq.heappush(queue, g)

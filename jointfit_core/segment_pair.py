@@ -372,6 +372,37 @@ class SegmentPair:
             self.seen(ps, local, frame_no)
         return None
 
+    def relabel(
+        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int
+    ) -> tuple[NDArray[np.bool_], list[int]] | None:
+        """The frame with the swapped labels of its failing segments put right, or None (no swap to put right).
+
+        A segment that failed with its visible markers found to be its reference's markers under
+        other labels (:meth:`~jointfit_core.segment_tracker.SegmentTracker.relabelling`: each
+        within half the template's smallest marker spacing of a different marker's predicted
+        place, or the permutation that passes the shape test unturned) has its rows of :attr:`Y`
+        moved to those labels. Returns the new missing-marker mask (2, Pmax) and the segments
+        relabelled; each tracker notes the frame (:attr:`~jointfit_core.segment_tracker.SegmentTracker.relabelled_at`).
+        The frame is then judged again as it now stands, and held out as usual if it still fails.
+        """
+        out: NDArray[np.bool_] | None = None
+        fixed: list[int] = []
+        for k, y, labels in verdict.follow:
+            vs = ps.parent if k == 0 else ps.child
+            if vs is None or np.array_equal(labels, vs.index):
+                continue
+            seg = self.tracker(k)
+            if out is None:
+                out = missing.copy()
+            self.Y[k, : seg.n_markers] = 0.0
+            self.Y[k, labels] = y
+            out[k, : seg.n_markers] = True
+            out[k, labels] = False
+            seg.relabelled_at = frame_no
+            seg.relabelled_frames += 1
+            fixed.append(k)
+        return None if out is None else (out, fixed)
+
     def hold_out(
         self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int
     ) -> tuple[NDArray[np.bool_], list[tuple[int, int | None]]]:

@@ -158,6 +158,8 @@ def _input_values(runner: JointRunner) -> dict[str, Any]:
         values[f"dropped: {reason}"] = count
     for side, n in zip(("parent", "child", "joint"), (*est.gated_frames, est.joint_gated_frames), strict=True):
         values[f"{side} gated (%)"] = round(100.0 * n / est.n_frames_seen, 2) if est.n_frames_seen else 0.0
+    for side, n in zip(("parent", "child"), est.relabelled_frames, strict=True):
+        values[f"{side} swapped labels put right (frames)"] = n
     if runner.loaded_from:
         values["calibration loaded from"] = runner.loaded_from
     if runner.load_problem:

@@ -425,9 +425,9 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "double",
         5.0,
         "Outlier gate: a segment whose markers jump by more than this many times their normal frame-to-frame "
-        "change (or fail the residual test, this many times the noise, while moving more than usual) loses its "
-        "worst marker (down to 3) or is not posed in that frame (swaps, ghosts, jumps; smooth skin motion passes); "
-        "0: off.",
+        "change (or fail the residual test, this many times the noise, while moving more than usual) has swapped "
+        "labels put right, else loses its worst marker (down to 3) or is not posed in that frame (ghosts, jumps; "
+        "smooth skin motion passes); 0: off.",
         minimum=0.0,
         maximum=1e3,
     ),

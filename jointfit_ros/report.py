@@ -161,6 +161,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
         "absurd_markers": r.counters["absurd_markers"],
     }
     out["gated"] = gated_share(r)
+    out["relabelled"] = dict(zip(("parent", "child"), est.relabelled_frames, strict=True))
     if r.cfg.type == "hinge":
         out["axis_points"] = r.axis_words()
     if sol is None:

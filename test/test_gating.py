@@ -39,14 +39,18 @@ def _stream(est: OnlineJoint, parent: NDArray[np.float64], child: NDArray[np.flo
 
 def _with_and_without_gate(
     kind: str, parent: NDArray[np.float64], child: NDArray[np.float64]
-) -> tuple[tuple[Any, dict[str, int]], tuple[Any, dict[str, int]]]:
-    """(estimate, dropped) over the whole stream with the default gate (5) and with none."""
-    results = []
-    for gate in (5.0, 0.0):
-        est = OnlineJoint(kind, window=5000, gate=gate)
-        _stream(est, parent, child)
-        results.append((est.estimate(), est.dropped))
-    return results[0], results[1]
+) -> tuple[tuple[Any, dict[str, int], tuple[int, int]], tuple[Any, dict[str, int]]]:
+    """(estimate, dropped, relabelled frames) over the whole stream with the default gate (5), and (estimate, dropped) with none."""
+    gated = OnlineJoint(kind, window=5000, gate=5.0)
+    _stream(gated, parent, child)
+    ungated = OnlineJoint(kind, window=5000, gate=0.0)
+    _stream(ungated, parent, child)
+    return (gated.estimate(), gated.dropped, gated.relabelled_frames), (ungated.estimate(), ungated.dropped)
+
+
+def _caught(est: OnlineJoint) -> int:
+    """Segment-frames the gate held out (whole or in part) or whose swapped labels it put right."""
+    return sum(est.gated_frames) + sum(est.relabelled_frames)
 
 
 def test_real_label_swap_right_hip() -> None:
@@ -60,7 +64,7 @@ def test_real_label_swap_right_hip() -> None:
     clean = clean_est.estimate()
     # The thigh with the two epicondyle markers whose labels swap from about frame 700.
     thigh = data.select(["RTHI1", "RTHI2", "RTHI3", "RLFE", "RMFE"])
-    (gated, dropped), (ungated, _) = _with_and_without_gate("ball", pelvis, thigh)
+    (gated, dropped, relabelled), (ungated, _) = _with_and_without_gate("ball", pelvis, thigh)
     # Same parent markers, so the same parent frame: compare the centres there.
     assert mahalanobis(gated.centre_parent - clean.centre_parent, gated.cov_parent) < 9.0  # e/3 (helpers.mahalanobis divides by the rank)
     assert np.linalg.norm(gated.centre_parent - clean.centre_parent) < 5.0  # mm; sd is ~8-12 mm here
@@ -69,9 +73,10 @@ def test_real_label_swap_right_hip() -> None:
     # inflating its sd to 60-90 mm and calling itself not identifiable: useless either way.
     assert np.linalg.norm(ungated.centre_parent - clean.centre_parent) > 50.0
     assert not ungated.identifiable
-    # About 950 swapped frames, both swapped markers removed in each; the clean thigh markers kept.
-    assert 1500 < dropped["child_gated_markers"] < 2200
-    assert "child_gated" not in dropped
+    # About 950 swapped frames, their labels put right (until 2026-12-03 both swapped markers were
+    # removed in each: 1916 markers); the clean thigh markers kept.
+    assert 900 < relabelled[1] < 1100 and relabelled[0] == 0, relabelled
+    assert dropped.get("child_gated_markers", 0) < 100 and "child_gated" not in dropped
 
 
 def _rig(seed: int, n: int = 1500) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -115,7 +120,7 @@ def test_injected_outliers(kind: str) -> None:
         sol = est.estimate()
         err = np.concatenate([sol.centre_parent - ref.centre_parent, sol.centre_child - ref.centre_child])
         assert sol.identifiable and mahalanobis(err, sol.cov) < 9.0, (kind, seed, err)  # e/6
-        assert sum(v for k, v in est.dropped.items() if "gated" in k) > 200
+        assert _caught(est) > 200 if kind != "swap" else sum(est.relabelled_frames) > 200, (kind, est.dropped)
         bad = OnlineJoint("ball", window=5000, gate=0.0)
         _stream(bad, parent, child)
         ub = bad.estimate()
@@ -131,7 +136,8 @@ def test_block_path_gates_exactly_as_the_frame_path() -> None:
     parent, child = _rig(7, 1200)
     _corrupt("swap", parent, child, 7)
     one, many = _frames_and_blocks(parent, child, 800, 150)
-    assert one.dropped == many.dropped and any("gated" in k for k in one.dropped)
+    assert one.dropped == many.dropped and one.relabelled_frames == many.relabelled_frames
+    assert sum(one.relabelled_frames) > 100, one.relabelled_frames
     assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
 
 
@@ -177,7 +183,7 @@ def test_swap_while_the_templates_are_built() -> None:
     sol = est.estimate()
     err = np.concatenate([sol.centre_parent - ref.centre_parent, sol.centre_child - ref.centre_child])
     assert sol.identifiable and mahalanobis(err, sol.cov) < 9.0, err  # e/6
-    assert est.dropped.get("parent_gated", 0) + est.dropped.get("parent_gated_markers", 0) >= 30
+    assert est.gated_frames[0] + est.relabelled_frames[0] >= 30, (est.dropped, est.relabelled_frames)
     # The template is the clean cluster: its inter-marker distances are the true ones.
     tc = est.templates[1]
     assert tc is not None
@@ -227,13 +233,14 @@ def test_swap_in_a_nearly_symmetric_cluster() -> None:
         child[k : k + length, [0, 2]] = child[k : k + length, [2, 0]]
         swapped_frames += max(0, min(length, parent.shape[0] - k))
         k += length
-    (sol, dropped), (ungated, _) = _with_and_without_gate("hinge", parent, child)
+    (sol, dropped, relabelled), (ungated, _) = _with_and_without_gate("hinge", parent, child)
     sd = np.degrees(np.sqrt(np.linalg.eigvalsh(sol.cov_direction_parent)[-1]))
     assert sol.identifiable
     assert _angle_deg(sol.direction_parent, ref.direction_parent) < 3.0 * sd, (sol.direction_parent, sd)
-    # No 3-marker subset of the swapped cluster fits unturned: the whole child is left out, in
-    # every swapped frame (swaps of up to 20 frames: the turn test keeps its reference).
-    assert dropped.get("child_gated", 0) == swapped_frames, (dropped, swapped_frames)
+    # The swapped cluster is the reference's markers under other labels: put right in every swapped
+    # frame (swaps of up to 20 frames: the turn test keeps its reference; until 2026-12-03 no 3-marker
+    # subset fitting unturned, the whole child was left out in each).
+    assert relabelled == (0, swapped_frames) and "child_gated" not in dropped, (dropped, relabelled)
     assert _angle_deg(ungated.direction_parent, ref.direction_parent) > 10.0 * sd
 
 
@@ -241,9 +248,10 @@ def test_swap_in_a_nearly_symmetric_cluster() -> None:
 def test_turn_test_restarts_after_occlusions_and_long_holds(occluded: int) -> None:
     """From frame 600 the symmetric child stays swapped for good (turned over, within the residual gate).
 
-    Seen continuously, the turn test holds it out for GATE_RELOCK_FRAMES frames, then takes the
-    new orientation as its reference. After an occlusion longer than GATE_TURN_GAP_FRAMES the test
-    has no reference: the turned cluster enters at once.
+    Seen continuously, the swap is put right in every frame (until 2026-12-03 the turn test held it
+    out for GATE_RELOCK_FRAMES frames, then took the new orientation as its reference). After an
+    occlusion longer than GATE_TURN_GAP_FRAMES the test has no reference: the turned cluster enters
+    at once.
     """
     from jointfit_core.segment_tracker import GATE_RELOCK_FRAMES, GATE_TURN_GAP_FRAMES
 
@@ -254,9 +262,10 @@ def test_turn_test_restarts_after_occlusions_and_long_holds(occluded: int) -> No
     _stream(est, parent, child)
     held = est.dropped.get("child_gated", 0)
     if occluded > GATE_TURN_GAP_FRAMES:
-        assert held == 0, est.dropped
+        assert held == 0 and est.relabelled_frames == (0, 0), est.dropped
     else:
-        assert held == GATE_RELOCK_FRAMES, est.dropped
+        assert held == 0 and est.relabelled_frames == (0, 800), (est.dropped, est.relabelled_frames)
+        assert 800 > GATE_RELOCK_FRAMES  # put right past the frames the turn test would have held out
 
 
 def test_block_path_turn_test_exactly_as_the_frame_path() -> None:
@@ -270,7 +279,8 @@ def test_block_path_turn_test_exactly_as_the_frame_path() -> None:
     child[1200:1215] = np.nan
     child[1800:, [0, 2]] = child[1800:, [2, 0]]
     one, many = _frames_and_blocks(parent, child, 900, 170)
-    assert one.dropped == many.dropped and one.dropped.get("child_gated", 0) > 500
+    assert one.dropped == many.dropped and one.relabelled_frames == many.relabelled_frames
+    assert one.relabelled_frames[1] > 500, one.relabelled_frames
     assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
 
 
@@ -292,8 +302,8 @@ def test_block_path_one_segment_posed_gates_as_the_frame_path() -> None:
     parent[rng.random(parent.shape[:2]) < 0.05] = np.nan
     child[rng.random(child.shape[:2]) < 0.03] = np.nan
     one, many = _frames_and_blocks(parent, child, 900, 130)
-    assert one.dropped == many.dropped
-    assert one.dropped.get("child_gated", 0) > 100 and one.dropped.get("parent_not_posed", 0) > 200, one.dropped
+    assert one.dropped == many.dropped and one.relabelled_frames == many.relabelled_frames
+    assert one.relabelled_frames[1] > 100 and one.dropped.get("parent_not_posed", 0) > 200, one.dropped
     assert_same_estimate(many.to_dict()["estimate"], one.to_dict()["estimate"])
 
 
@@ -332,7 +342,8 @@ def test_block_path_while_frozen_gates_as_the_frame_path() -> None:
         one.update(parent[k], child[k], stamps[k])
     for lo in range(600, 1500, 128):
         many.update_many(parent[lo : lo + 128], child[lo : lo + 128], stamps[lo : lo + 128])
-    assert one.dropped == many.dropped and one.dropped.get("child_gated", 0) >= 12 * 14
+    assert one.dropped == many.dropped and one.relabelled_frames == many.relabelled_frames
+    assert one.relabelled_frames[1] >= 12 * 14, one.relabelled_frames
     assert one._pose is not None and many._pose is not None
     for a, b in ((one._pose.parent, many._pose.parent), (one._pose.child, many._pose.child)):  # the turn references
         assert a.ref_frame == b.ref_frame and a.held == b.held
