@@ -67,10 +67,10 @@ def test_the_hip_and_the_knee_gate_their_shared_thigh_alike(seed: int) -> None:
             assert h.dropped.get(f"child_{what}", 0) == kn.dropped.get(f"parent_{what}", 0), (side, what)
         if side == "r":
             swapped = sum(700 <= f - 1 < 900 for f in hip_frames)
-    # not vacuous: both gated the swap, in 54 (seed 2) to 213 (seed 1) of its 200 frames (frames with
-    # markers left out count); the rest got in, by both joints alike, once the deforming cluster's
-    # residual level had risen with the leave-out refits that kept one swapped marker
-    assert swapped > 40
+    # not vacuous: the gate log holds the frames in which the thigh failed, its swapped labels put right
+    # (SegmentPair.relabel) or markers left out; all 200 swap frames (before relabelling: 54-213 held out,
+    # the rest let in once the deforming cluster's level had risen)
+    assert swapped >= 195
 
 
 def test_the_block_path_gates_the_shared_thigh_alike_and_as_frame_by_frame() -> None:
@@ -105,4 +105,4 @@ def test_the_block_path_gates_the_shared_thigh_alike_and_as_frame_by_frame() -> 
         assert h.dropped.get("child_gated_markers", 0) == kn.dropped.get("parent_gated_markers", 0), block
         logs.append(hip_frames)
     assert logs[0] == logs[1]
-    assert sum(700 <= f - 1 < 900 for f in logs[0]) > 40  # not vacuous: the swap was gated
+    assert sum(700 <= f - 1 < 900 for f in logs[0]) >= 195  # not vacuous: the swap was caught (put right)
