@@ -10,14 +10,16 @@ each joint's own parent template frame (:meth:`Skeleton.joint_in_template`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from helpers import mahalanobis
 from numpy.typing import NDArray
 
-from jointfit_core.skeleton_truth import Skeleton
+from jointfit_core.skeleton_sta import skeleton_skin_frames, sta_amplitudes
+from jointfit_core.skeleton_truth import Skeleton, make_skeleton
 from jointfit_ros.inputs import MessageRouter
-from jointfit_ros.params import NodeConfig
+from jointfit_ros.params import NodeConfig, node_config, params_from_file
 from jointfit_ros.raw import pose_array_bytes
 from jointfit_ros.runner import JointRunner
 
@@ -123,3 +125,25 @@ def score(sk: Skeleton, runner: JointRunner) -> JointScore:
         float(perp @ np.linalg.solve(cov_perp, perp)) / 2.0, mahalanobis(sol.point_parent - point, sol.cov_point_parent),
         bool(sol.identifiable), gated,
     )  # fmt: skip
+
+
+#: The lower body's parameters (``config/lower_body.yaml``).
+LOWER_BODY = Path(__file__).resolve().parents[1] / "config" / "lower_body.yaml"
+
+
+def swapped_thigh_stream(seed: int, swap: bool = True) -> tuple[NodeConfig, list[bytes]]:
+    """The skin lower body, 12 s at 100 Hz (1 % occluded), two right-thigh markers swapped in frames 700-899.
+
+    Returns the node's configuration (``config/lower_body.yaml``) and the frames as PoseArray CDR
+    bytes stamped from :data:`T0`. ``swap`` False: the same stream without the swap.
+    """
+    sk = make_skeleton("lower", seed=seed)
+    t = np.arange(1200) / 100.0
+    frames = skeleton_skin_frames(sk, t, np.random.default_rng(seed), sta_amplitudes(sk), noise=0.0005, occlusion=0.01)
+    cfg = node_config(params_from_file(LOWER_BODY))
+    if swap:
+        names = sk.marker_names()
+        hip = next(j for j in cfg.joints if j.name == "r_hip")
+        a, b = (names.index(m) for m in hip.child_markers[:2])
+        frames[700:900, [a, b]] = frames[700:900, [b, a]]
+    return cfg, [pose_array_bytes(T0 + round(tk * 1e9), "world", f) for tk, f in zip(t, frames, strict=True)]

@@ -11,31 +11,17 @@ joint test (the relative pose of the joint's two segments) is the joint's own an
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from skeleton_runs import swapped_thigh_stream
 
-from jointfit_core.skeleton_sta import skeleton_skin_frames, sta_amplitudes
-from jointfit_core.skeleton_truth import make_skeleton
 from jointfit_ros.inputs import MessageRouter
-from jointfit_ros.params import node_config, params_from_file
-from jointfit_ros.raw import pose_array_bytes
 from jointfit_ros.runner import JointRunner
-
-CONFIG = Path(__file__).resolve().parents[1] / "config" / "lower_body.yaml"
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_the_hip_and_the_knee_gate_their_shared_thigh_alike(seed: int) -> None:
-    sk = make_skeleton("lower", seed=seed)
-    t = np.arange(1200) / 100.0
-    frames = skeleton_skin_frames(sk, t, np.random.default_rng(seed), sta_amplitudes(sk), noise=0.0005, occlusion=0.01)
-    cfg = node_config(params_from_file(CONFIG))
-    names = sk.marker_names()
-    hip = next(j for j in cfg.joints if j.name == "r_hip")
-    a, b = (names.index(m) for m in hip.child_markers[:2])
-    frames[700:900, [a, b]] = frames[700:900, [b, a]]  # a label swap on the right thigh
+    cfg, raws = swapped_thigh_stream(seed)
     runners = [JointRunner(j, cfg) for j in cfg.joints]
     for r in runners:
         r.estimator.gate_log = []
@@ -43,8 +29,8 @@ def test_the_hip_and_the_knee_gate_their_shared_thigh_alike(seed: int) -> None:
     by = {r.cfg.name: r.estimator for r in runners}
     pairs = [(by[f"{side}_hip"], by[f"{side}_knee"]) for side in ("r", "l")]
     compared = 0
-    for k, (tk, f) in enumerate(zip(t, frames, strict=True)):
-        router.markers(pose_array_bytes(10**12 + round(tk * 1e9), "world", f))
+    for k, raw in enumerate(raws):
+        router.markers(raw)
         for h, kn in pairs:  # this frame: the same thigh pose and the same counters from both joints
             assert h.gated_frames[1] == kn.gated_frames[0], k
             hp, kp = h.frame_poses, kn.frame_poses
@@ -75,16 +61,7 @@ def test_the_hip_and_the_knee_gate_their_shared_thigh_alike(seed: int) -> None:
 
 def test_the_block_path_gates_the_shared_thigh_alike_and_as_frame_by_frame() -> None:
     """``jointfit fit``'s blocks (MessageRouter.markers_many): the same gate log for both copies, and the frame path's."""
-    seed = 3
-    sk = make_skeleton("lower", seed=seed)
-    t = np.arange(1200) / 100.0
-    frames = skeleton_skin_frames(sk, t, np.random.default_rng(seed), sta_amplitudes(sk), noise=0.0005, occlusion=0.01)
-    cfg = node_config(params_from_file(CONFIG))
-    names = sk.marker_names()
-    hip = next(j for j in cfg.joints if j.name == "r_hip")
-    a, b = (names.index(m) for m in hip.child_markers[:2])
-    frames[700:900, [a, b]] = frames[700:900, [b, a]]
-    raws = [pose_array_bytes(10**12 + round(tk * 1e9), "world", f) for tk, f in zip(t, frames, strict=True)]
+    cfg, raws = swapped_thigh_stream(3)
     logs = []
     for block in (1, 100):
         runners = [JointRunner(j, cfg) for j in cfg.joints]

@@ -11,34 +11,17 @@ reference's under other labels) and puts the labels right (:meth:`SegmentPair.re
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from skeleton_runs import swapped_thigh_stream
 
-from jointfit_core.skeleton_sta import skeleton_skin_frames, sta_amplitudes
-from jointfit_core.skeleton_truth import make_skeleton
 from jointfit_ros.inputs import MessageRouter
-from jointfit_ros.params import node_config, params_from_file
-from jointfit_ros.raw import pose_array_bytes
 from jointfit_ros.runner import JointRunner
-
-CONFIG = Path(__file__).resolve().parents[1] / "config" / "lower_body.yaml"
-SWAP = slice(700, 900)
 
 
 def _run(seed: int, swap: bool, block: int) -> JointRunner:
-    """The lower body's right hip after 12 s at 100 Hz (skin, 1 % occluded), solved every 0.1 s."""
-    sk = make_skeleton("lower", seed=seed)
-    t = np.arange(1200) / 100.0
-    frames = skeleton_skin_frames(sk, t, np.random.default_rng(seed), sta_amplitudes(sk), noise=0.0005, occlusion=0.01)
-    cfg = node_config(params_from_file(CONFIG))
-    if swap:
-        names = sk.marker_names()
-        hip = next(j for j in cfg.joints if j.name == "r_hip")
-        a, b = (names.index(m) for m in hip.child_markers[:2])
-        frames[SWAP, [a, b]] = frames[SWAP, [b, a]]
-    raws = [pose_array_bytes(10**12 + round(tk * 1e9), "world", f) for tk, f in zip(t, frames, strict=True)]
+    """The lower body's right hip after :func:`swapped_thigh_stream`, solved every 0.1 s (frame path or blocks)."""
+    cfg, raws = swapped_thigh_stream(seed, swap)
     runners = [JointRunner(j, cfg) for j in cfg.joints[:2]]  # the right hip and knee: they share the thigh
     router = MessageRouter(cfg, runners)
     for lo in range(0, len(raws), 10):
