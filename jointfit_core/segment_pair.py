@@ -373,7 +373,7 @@ class SegmentPair:
         return None
 
     def relabel(
-        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int
+        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int, allowed: tuple[bool, bool]
     ) -> tuple[NDArray[np.bool_], list[int]] | None:
         """The frame with the swapped labels of its failing segments put right, or None (no swap to put right).
 
@@ -384,12 +384,16 @@ class SegmentPair:
         moved to those labels. Returns the new missing-marker mask (2, Pmax) and the segments
         relabelled; each tracker notes the frame (:attr:`~jointfit_core.segment_tracker.SegmentTracker.relabelled_at`).
         The frame is then judged again as it now stands, and held out as usual if it still fails.
+
+        ``allowed``: per segment, whether its labels may be put right: markers, not the virtual
+        markers of a pose stream (a regular tetrahedron, which a turn of one of its symmetries
+        maps onto itself: "putting right" a pose that glitched would make up a rotation).
         """
         out: NDArray[np.bool_] | None = None
         fixed: list[int] = []
         for k, y, labels in verdict.follow:
             vs = ps.parent if k == 0 else ps.child
-            if vs is None or np.array_equal(labels, vs.index):
+            if vs is None or not allowed[k] or np.array_equal(labels, vs.index):
                 continue
             seg = self.tracker(k)
             if out is None:
