@@ -793,7 +793,7 @@ class OnlineJoint:
             if verdict is not None:
                 # (fixed templates: a pose stream's virtual markers, whose labels cannot swap)
                 markers = (self._templates_arg[0] is None, self._templates_arg[1] is None)
-                fix = None if relabelled or refit[0] or refit[1] else pose.relabel(missing, ps, verdict, frame_no, markers)
+                fix = None if relabelled or refit[0] or refit[1] else pose.relabel(missing, ps, verdict, markers)
                 if fix is not None:  # a swap put right: the frame judged again with all its markers
                     if self.gate_log is not None:
                         self.gate_log.extend((frame_no, k, np.nan if stamp is None else stamp) for k in fix[1])

@@ -390,7 +390,9 @@ def _gated_block(
             break
         pose.Y[...] = Y[f]
         counted = (not bool(parent_ok[f]), not bool(child_ok[f]))
+        relabels = joint.relabelled_frames
         joint._add(missing[f], None if st is None else float(st[f]), int(numbers[f]), counted)
+        relabelled = [a != b for a, b in zip(relabels, joint.relabelled_frames, strict=True)]  # frame f's labels put right
         after = int(np.searchsorted(rows, f, side="right"))
         for k in range(2):
             seg = seg_rows[k]
@@ -401,8 +403,7 @@ def _gated_block(
                     heapq.heappush(queue, g)
                     queued.add(g)
             if shapes and i > 0 and seg[i - 1] == after - 1:  # frame f posed segment k
-                relabelled = pose.tracker(k).relabelled_at == int(numbers[f])
-                for j in shapes[k].recheck(i - 1, _SS_MARGIN, relabelled).tolist():
+                for j in shapes[k].recheck(i - 1, _SS_MARGIN, relabelled[k]).tolist():
                     g = int(rows[seg[j]])
                     if g not in queued:
                         heapq.heappush(queue, g)

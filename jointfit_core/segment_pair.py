@@ -373,7 +373,7 @@ class SegmentPair:
         return None
 
     def relabel(
-        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int, allowed: tuple[bool, bool]
+        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, allowed: tuple[bool, bool]
     ) -> tuple[NDArray[np.bool_], list[int]] | None:
         """The frame with the swapped labels of its failing segments put right, or None (no swap to put right).
 
@@ -382,7 +382,7 @@ class SegmentPair:
         within half the template's smallest marker spacing of a different marker's predicted
         place, or the permutation that passes the shape test unturned) has its rows of :attr:`Y`
         moved to those labels. Returns the new missing-marker mask (2, Pmax) and the segments
-        relabelled; each tracker notes the frame (:attr:`~jointfit_core.segment_tracker.SegmentTracker.relabelled_at`).
+        relabelled; each tracker counts the frame (:attr:`~jointfit_core.segment_tracker.SegmentTracker.relabelled_frames`).
         The frame is then judged again as it now stands, and held out as usual if it still fails.
 
         ``allowed``: per segment, whether its labels may be put right: markers, not the virtual
@@ -402,7 +402,6 @@ class SegmentPair:
             self.Y[k, labels] = y
             out[k, : seg.n_markers] = True
             out[k, labels] = False
-            seg.relabelled_at = frame_no
             seg.relabelled_frames += 1
             fixed.append(k)
         return None if out is None else (out, fixed)

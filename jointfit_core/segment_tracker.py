@@ -152,9 +152,8 @@ class SegmentTracker:
         self.shape = ShapeTrack(n_markers)  # the outlier gate's shape references and recent jumps
         self.gated_frames = 0  # frames in which the segment failed the outlier gate
         #: Frames in which the gate found the segment's labels swapped and put them right
-        #: (:meth:`~jointfit_core.segment_pair.SegmentPair.relabel`), and the number of the latest.
+        #: (:meth:`~jointfit_core.segment_pair.SegmentPair.relabel`).
         self.relabelled_frames = 0
-        self.relabelled_at = 0
         # The gate's turn test: the reference pose (the last pose that passed the gate, carried along
         # through the frames held out since), whether there is one, the number of the frame that set it
         # (frames are numbered as they arrive) and the frames held out in a row since.
