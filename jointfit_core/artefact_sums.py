@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .artefact import NU_MIN
+from .hinge_from_sums import gauge_free_pinv, svd3
 from .pose import skew
 
 __all__ = [
@@ -167,20 +168,12 @@ def hinge_parameters(
     As :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`: the top
     singular pair of ``S`` (signed so that ``n_p . reference >= 0``) and the
     pseudo-inverse solution of eq. 9 without the gauge direction, each point
-    moved to the axis point nearest its local origin.
+    moved to the axis point nearest its local origin (without the bias
+    step: its derivatives are second order).
     """
-    U, s, Vt = np.linalg.svd(S)
-    V = Vt.T
+    U, s, V = svd3(S)
     flip = 1.0 if U[:, 0] @ reference >= 0.0 else -1.0
-    E, lam = [], []
-    for k in range(3):
-        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
-            if k == 0 and sign > 0:
-                continue
-            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
-            lam.append(value)
-    Em = np.stack(E, axis=1)
-    a = (Em / np.asarray(lam)) @ (Em.T @ np.concatenate([sum_t, -sum_qt]))
+    a = gauge_free_pinv(U, s, V, n) @ np.concatenate([sum_t, -sum_qt])
     n_p, n_c = flip * U[:, 0], flip * V[:, 0]
     out: FloatArray = np.concatenate([n_p, n_c, a[:3] - n_p * (n_p @ a[:3]), a[3:] - n_c * (n_c @ a[3:])])
     return out

@@ -27,7 +27,7 @@ from .segments import (
     _sums_rms,
 )
 
-__all__ = ["PoseSumsAxis", "axis_from_pose_sums"]
+__all__ = ["PoseSumsAxis", "axis_from_pose_sums", "gauge_free_pinv", "svd3"]
 
 FloatArray = NDArray[np.float64]
 
@@ -109,6 +109,30 @@ def _direction_covariance(
     return out
 
 
+def svd3(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``U, s, V`` of a 3x3 matrix (``S = U diag(s) V^T``, singular values descending)."""
+    U, s, Vt = np.linalg.svd(S)
+    return U, s, Vt.T
+
+
+def gauge_free_pinv(U: FloatArray, s: FloatArray, V: FloatArray, n: float) -> FloatArray:
+    """Pseudo-inverse (6, 6) of ``H = [[N I, -S], [-S^T, N I]]`` without the gauge direction ``(u_0, v_0) / sqrt 2``.
+
+    ``H``'s eigenpairs are ``N -/+ s_k`` with ``(u_k, +/-v_k) / sqrt 2`` for ``S = U diag(s) V^T``.
+    """
+    E = []
+    lam = []
+    for k in range(3):
+        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
+            if k == 0 and sign > 0:
+                continue
+            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
+            lam.append(value)
+    Em = np.stack(E, axis=1)  # (6, 5)
+    out: FloatArray = (Em / np.asarray(lam)) @ Em.T
+    return out
+
+
 def axis_from_pose_sums(
     sums: PoseSums,
     W_parent_local: ArrayLike,
@@ -116,6 +140,8 @@ def axis_from_pose_sums(
     *,
     length_scale: float = 0.0,
     reference_direction: ArrayLike | None = None,
+    compensate_bias: bool = True,
+    W_bias: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> PoseSumsAxis:
     """Hinge axis from running sums of relative poses (closed form).
 
@@ -131,6 +157,13 @@ def axis_from_pose_sums(
     reference_direction : array_like, shape (3,), optional
         ``direction_parent`` has a non-negative dot product with it; default
         the parent local axis along which the direction is largest.
+    compensate_bias : bool
+        Remove the second-order bias caused by the pose noise from the
+        direction and the point pair (default True; see Notes).
+    W_bias : (array_like, array_like), shapes (6, 6), optional
+        The pose covariances (parent, child) of the bias compensation when
+        they are not the covariance's (skin markers: those of the white
+        marker noise), as in :func:`~jointfit_core.segments.centre_from_pose_sums`.
 
     Returns
     -------
@@ -157,7 +190,20 @@ def axis_from_pose_sums(
     :func:`~jointfit_core.segments.centre_from_pose_sums` with the
     pseudo-inverse; the reported points ``c - n (n . c)`` add the along-axis
     shift caused by the direction's uncertainty (treated as independent of
-    the point pair's). No second-order bias compensation.
+    the point pair's).
+
+    **Bias compensation.** A small rotation noise ``w`` lowers ``Q`` on
+    average: ``E[exp(-[w_p]x) Q exp([w_c]x)] = (I + A_p / 2) Q (I + A_c / 2)``
+    to second order, with ``A = Sigma - tr(Sigma) I`` and ``Sigma`` the
+    rotation block of the local pose covariance. The anisotropic part turns
+    the singular vectors of ``S``; it does not shrink with ``N`` and, when
+    the frames rotate little (a still stance followed by a short flexion),
+    it is as large as the signal: on the fake mocap's knee, 670 still frames
+    and 80 moving ones put the axis point 9 mm off with an sd of 3 mm.
+    The direction is therefore taken from ``S - (A_p S + S A_c) / 2``, and
+    the point pair is shifted by the pseudo-inverse times the estimating
+    equation's expected value, as the ball's
+    (:func:`~jointfit_core.segments.centre_from_pose_sums`).
     """
     Wp6 = _check_cov6(W_parent_local, "W_parent_local")
     Wc6 = _check_cov6(W_child_local, "W_child_local")
@@ -166,13 +212,18 @@ def axis_from_pose_sums(
         raise InputError(f"sums: expected at least 3 frames, got {n:g}")
     S = np.asarray(sums.S)
     K = np.asarray(sums.K)
-    U, s, Vt = np.linalg.svd(S)
-    V = Vt.T
-    deficit = np.clip(1.0 - s / n, 0.0, None)
+    deficit = np.clip(1.0 - np.linalg.svd(S, compute_uv=False) / n, 0.0, None)
     if deficit[1] <= SINGULAR_REL:
         raise NotIdentifiableError(
             "no relative rotation between the child and the parent: the hinge axis is undefined; flex the joint"
         )
+    Sp, Sc = Wp6[:3, :3], Wc6[:3, :3]
+    if W_bias is not None:
+        Sp = _check_cov6(W_bias[0], "W_bias[0]")[:3, :3]
+        Sc = _check_cov6(W_bias[1], "W_bias[1]")[:3, :3]
+    A_p, A_c = Sp - np.trace(Sp) * np.eye(3), Sc - np.trace(Sc) * np.eye(3)
+    S_dir = S - 0.5 * (A_p @ S + S @ A_c) if compensate_bias else S
+    U, s, V = svd3(S_dir)
     n_p, n_c = U[:, 0].copy(), V[:, 0].copy()
     if reference_direction is not None:
         ref = check_vector3(reference_direction, name="reference_direction", unit=True)
@@ -181,19 +232,14 @@ def axis_from_pose_sums(
         ref[int(np.argmax(np.abs(n_p)))] = 1.0
     flip = 1.0 if n_p @ ref >= 0.0 else -1.0
 
-    # Pseudo-inverse of H = [[N I, -S], [-S^T, N I]] without the gauge direction (u_0, v_0)/sqrt2.
+    # The point pair solves the normal equations of the noisy S (as the ball's, whose expected value
+    # the bias term below is), in the complement of their own gauge direction.
+    H_pinv = gauge_free_pinv(*svd3(S), n)
     g = np.concatenate([sums.sum_t, -np.asarray(sums.sum_qt_t)])
-    E = []
-    lam = []
-    for k in range(3):
-        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
-            if k == 0 and sign > 0:
-                continue
-            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
-            lam.append(value)
-    Em = np.stack(E, axis=1)  # (6, 5)
-    H_pinv = (Em / np.asarray(lam)) @ Em.T
     a = H_pinv @ g
+    if compensate_bias:
+        D_p, D_c = A_p @ a[:3], A_c @ a[3:]
+        a = a + H_pinv @ (-0.5 * np.concatenate([n * D_p + S @ D_c, S.T @ D_p + n * D_c]))
     c_p, c_c = a[:3], a[3:]
 
     # Sandwich covariance of the point pair (as centre_from_pose_sums, with the pseudo-inverse).

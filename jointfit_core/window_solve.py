@@ -298,12 +298,14 @@ def solve_window(request: SolveRequest) -> SolveResult:
     white = _white_noise(request, (sigma_p, sigma_c)) if skin else None
     centre_limit = centre_sd_limit(skin)
     sol: PoseSumsCentre | PoseSumsAxis
+    W_bias = None if white is None else (white[0] ** 2 * Wp_unit, white[1] ** 2 * Wc_unit)
     if request.kind == "ball":
-        W_bias = None if white is None else (white[0] ** 2 * Wp_unit, white[1] ** 2 * Wc_unit)
         sol = centre_from_pose_sums(sums, Wp, Wc, length_scale=scale, W_bias=W_bias, sd_limit=centre_limit)
         c_p, c_c = sol.centre_parent, sol.centre_child
     else:
-        sol = axis_from_pose_sums(sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction)
+        sol = axis_from_pose_sums(
+            sums, Wp, Wc, length_scale=scale, reference_direction=request.reference_direction, W_bias=W_bias
+        )
         c_p, c_c = hinge_residual_pair(sums, sol.direction_parent, sol.direction_child, sol.point_parent, sol.point_child)
     lag = LagSums.from_vector(request.sums[_LAG : _LAG + 29])
     tl = TimeLagSums.from_vector(request.sums[_TL])
@@ -406,10 +408,14 @@ def _with_artefact(sol: PoseSumsCentre | PoseSumsAxis, cov: FloatArray) -> PoseS
     if isinstance(sol, PoseSumsCentre):
         total = sol.cov + cov
         return replace(sol, cov=total, cov_parent=total[:3, :3], cov_child=total[3:, 3:])
+    # The soft-tissue part is linearised at the closed form without the bias step
+    # (artefact_sums.hinge_parameters): keep each direction's covariance orthogonal to the published direction.
+    P_p = np.eye(3) - np.outer(sol.direction_parent, sol.direction_parent)
+    P_c = np.eye(3) - np.outer(sol.direction_child, sol.direction_child)
     return replace(
         sol,
-        cov_direction_parent=sol.cov_direction_parent + cov[:3, :3],
-        cov_direction_child=sol.cov_direction_child + cov[3:6, 3:6],
+        cov_direction_parent=sol.cov_direction_parent + P_p @ cov[:3, :3] @ P_p,
+        cov_direction_child=sol.cov_direction_child + P_c @ cov[3:6, 3:6] @ P_c,
         cov_point_parent=sol.cov_point_parent + cov[6:9, 6:9],
         cov_point_child=sol.cov_point_child + cov[9:, 9:],
     )
