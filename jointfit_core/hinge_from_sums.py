@@ -25,6 +25,8 @@ from .segments import (
     _motion,
     _sums_meat,
     _sums_rms,
+    debiased_sums,
+    noise_bias_matrices,
 )
 
 __all__ = ["PoseSumsAxis", "axis_from_pose_sums", "gauge_free_pinv", "svd3"]
@@ -200,10 +202,11 @@ def axis_from_pose_sums(
     the frames rotate little (a still stance followed by a short flexion),
     it is as large as the signal: on the fake mocap's knee, 670 still frames
     and 80 moving ones put the axis point 9 mm off with an sd of 3 mm.
-    The direction is therefore taken from ``S - (A_p S + S A_c) / 2``, and
-    the point pair is shifted by the pseudo-inverse times the estimating
-    equation's expected value, as the ball's
-    (:func:`~jointfit_core.segments.centre_from_pose_sums`).
+    The direction and the point pair are therefore solved from the
+    corrected sums of :func:`~jointfit_core.segments.debiased_sums`, as the
+    ball's (:func:`~jointfit_core.segments.centre_from_pose_sums`); without
+    rotation beyond the noise, from the noisy sums with the ball's
+    first-order step.
     """
     Wp6 = _check_cov6(W_parent_local, "W_parent_local")
     Wc6 = _check_cov6(W_child_local, "W_child_local")
@@ -217,13 +220,10 @@ def axis_from_pose_sums(
         raise NotIdentifiableError(
             "no relative rotation between the child and the parent: the hinge axis is undefined; flex the joint"
         )
-    Sp, Sc = Wp6[:3, :3], Wc6[:3, :3]
-    if W_bias is not None:
-        Sp = _check_cov6(W_bias[0], "W_bias[0]")[:3, :3]
-        Sc = _check_cov6(W_bias[1], "W_bias[1]")[:3, :3]
-    A_p, A_c = Sp - np.trace(Sp) * np.eye(3), Sc - np.trace(Sc) * np.eye(3)
-    S_dir = S - 0.5 * (A_p @ S + S @ A_c) if compensate_bias else S
-    U, s, V = svd3(S_dir)
+    g = np.concatenate([sums.sum_t, -np.asarray(sums.sum_qt_t)])
+    A_p, A_c = noise_bias_matrices(Wp6, Wc6, W_bias)
+    S_c, g_c = debiased_sums(sums, A_p, A_c) if compensate_bias else (S, g)
+    U, s, V = svd3(S_c)
     n_p, n_c = U[:, 0].copy(), V[:, 0].copy()
     if reference_direction is not None:
         ref = check_vector3(reference_direction, name="reference_direction", unit=True)
@@ -232,12 +232,13 @@ def axis_from_pose_sums(
         ref[int(np.argmax(np.abs(n_p)))] = 1.0
     flip = 1.0 if n_p @ ref >= 0.0 else -1.0
 
-    # The point pair solves the normal equations of the noisy S (as the ball's, whose expected value
-    # the bias term below is), in the complement of their own gauge direction.
-    H_pinv = gauge_free_pinv(*svd3(S), n)
-    g = np.concatenate([sums.sum_t, -np.asarray(sums.sum_qt_t)])
-    a = H_pinv @ g
-    if compensate_bias:
+    # The point pair: the (corrected) normal equations in the complement of the gauge direction.
+    if n - s[1] > SINGULAR_REL * n:
+        H_pinv = gauge_free_pinv(U, s, V, n)
+        a = H_pinv @ g_c
+    else:  # no rotation beyond the noise: the noisy equations and the ball's first-order step
+        H_pinv = gauge_free_pinv(*svd3(S), n)
+        a = H_pinv @ g
         D_p, D_c = A_p @ a[:3], A_c @ a[3:]
         a = a + H_pinv @ (-0.5 * np.concatenate([n * D_p + S @ D_c, S.T @ D_p + n * D_c]))
     c_p, c_c = a[:3], a[3:]

@@ -66,8 +66,11 @@ def test_single_axis_ball_is_not_covered() -> None:
     sp, sc = est.noise_std
     cov = joint_coverage(sol, est.length_scale, sums, sp**2 * Wp, sc**2 * Wc)
     assert not sol.identifiable
-    # the covariance of an unexcited direction means nothing (here it is small): the motion part says so
-    assert cov.motion is not None and cov.overall == cov.motion < 0.05, cov
+    # both parts say so: the motion part, and the covariance, which is large along the unexcited direction
+    # (the rotation axis) now that the noise's share of the normal matrix is removed (debiased_sums)
+    assert cov.motion is not None and cov.motion < 0.05 and cov.estimate < 0.05 and cov.overall < 0.05, cov
+    axis = np.linalg.svd(np.asarray(sums.S))[0][:, 0]  # the rotation axis, parent frame
+    assert abs(float(cov.least_covered @ axis)) > 0.95, (cov.least_covered, axis)
 
 
 def test_frozen_estimate_has_no_motion_part() -> None:

@@ -218,7 +218,9 @@ def test_error_and_uncertainty_shrink_together_while_streaming() -> None:
     rms_sd = np.sqrt(np.mean(sd**2, axis=0))
     assert np.all(np.diff(rms_err) < 0) and np.all(np.diff(rms_sd) < 0), (rms_err, rms_sd)
     assert rms_err[-1] < 0.4 * rms_err[0]
-    np.testing.assert_allclose(rms_err / rms_sd, 1.0, atol=0.25)
+    # error / sd per trial, then rms over the trials (a pooled rms of the sds is one trial's: at 240 frames
+    # the least excited trial's sd is 3x the next one's)
+    np.testing.assert_allclose(np.sqrt(np.mean((err / sd) ** 2, axis=0)), 1.0, atol=0.25)
     for j in range(len(checkpoints)):
         mc_band(list(e3[:, j]), 0.7, 1.4)  # 40 trials: the mean of e/3 has sd ~0.13
 

@@ -53,6 +53,8 @@ def test_no_first_estimate_called_identifiable_is_confidently_wrong() -> None:
     assert e3[ok].max() < 9.0, e3[ok].max()  # ~5 sd in 3-D
     assert np.mean(e3[ok] > 3.0) < 0.08, np.mean(e3[ok] > 3.0)  # chi2_3 / 3 > 3: 3 % when honest
     assert 0.6 < e3[ok].mean() < 1.5
-    # what the verdict withholds now: the estimates that were published and were over-confident
+    # what the verdict withholds: estimates that would be published by their sd alone, and over-confident
+    # several times as often as the published ones (e/3 > 3: 14 % of 126 against 1 % of 707; before the
+    # noise's share of the normal matrix was removed, debiased_sums, 73 % against 2.5 %)
     held = ~ok & (rel <= 0.1)
-    assert held.sum() > 20 and np.mean(e3[held] > 3.0) > 0.15
+    assert held.sum() > 20 and np.mean(e3[held] > 3.0) > max(0.1, 5.0 * np.mean(e3[ok] > 3.0))

@@ -23,6 +23,7 @@ from jointfit_core.segments import (
     centre_from_pose_sums,
     fit_axis_two_segments,
     fit_centre_two_segments,
+    noise_bias_matrices,
     pose_sums_from_relative,
     relative_poses,
 )
@@ -324,7 +325,12 @@ def test_sums_add_and_subtract_to_the_batch_closed_form(stoddart_rig: Rig) -> No
     Wt = Jp @ W_p @ Jp.T + Q[both] @ (Jc @ W_c @ Jc.T) @ np.swapaxes(Q[both], -1, -2)
     M = np.concatenate([np.broadcast_to(np.eye(3), Q[both].shape), -Q[both]], axis=2)
     B = (np.swapaxes(M, -1, -2) @ Wt @ M).sum(axis=0)
+    # The bread: the normal matrix sum M^T M with S = sum Q freed of the noise's second-order bias.
+    A_p, A_c = noise_bias_matrices(W_p, W_c)
+    S = Q[both].sum(axis=0)
     H = (np.swapaxes(M, -1, -2) @ M).sum(axis=0)
+    H[:3, 3:] += 0.5 * (A_p @ S + S @ A_c)
+    H[3:, :3] = H[:3, 3:].T
     np.testing.assert_allclose(full.cov, np.linalg.inv(H) @ B @ np.linalg.inv(H), rtol=1e-8, atol=1e-14)
 
 
