@@ -308,6 +308,7 @@ def artefact_covariance(
     weights: tuple[float, float],
     *,
     weighted: bool = True,
+    bread_correction: FloatArray | None = None,
 ) -> ArtefactCovariance:
     """Statistical and soft-tissue covariance of a two-segment estimate (Gauss-Markov or least squares, linearised).
 
@@ -338,6 +339,13 @@ def artefact_covariance(
         J_t^T r_t = 0`` (an estimate first-order equivalent to unweighted least
         squares, e.g. the hinge closed form). The influence of a residual
         change on the estimate, and so every covariance, follows the equations.
+    bread_correction : ndarray, shape (m, m), optional
+        Weighted equations solved with the pose noise's expected share of
+        ``A = sum J^T W^-1 J`` removed (``A - bread_correction``, e.g. after a
+        still stance, see :func:`jointfit_core.segments._debiased_weighted`):
+        the influence of a residual is ``(A - bread_correction)^-1 J^T
+        W^-1``, and the white floor the sandwich with ``A``. Ignored when
+        ``A - bread_correction`` is not positive definite.
 
     Returns
     -------
@@ -410,7 +418,15 @@ def artefact_covariance(
     # would lose digits to the conditioning of L (rows in different units)
     Ju, Du = (Jw, Dw) if weighted else (J, D)
     A = np.einsum("nim,nip->mp", Ju, Ju)
-    A_inv = _inv_scaled(0.5 * (A + A.T))
+    A = 0.5 * (A + A.T)
+    A_inv = _inv_scaled(A)
+    white = A_inv if weighted else _white_sandwich(A_inv, J, W)
+    if weighted and bread_correction is not None:
+        A_b = A - 0.5 * (bread_correction + bread_correction.T)
+        if np.all(np.diag(A_b) > 0.0) and np.linalg.eigvalsh(A_b)[0] > 0.0:
+            A_inv = _inv_scaled(A_b)
+            white = A_inv @ A @ A_inv
+            white = 0.5 * (white + white.T)
     # K_t summed against the features: C (F, m, 12)
     JtWD = np.swapaxes(Ju, 1, 2) @ Du  # (n, m, 12)
     C = np.einsum("mp,npj,nf->fmj", A_inv, JtWD, features)
@@ -442,7 +458,7 @@ def artefact_covariance(
     scores = np.einsum("nim,ni->nm", Jw, zr) if weighted else np.einsum("nim,ni->nm", J, (Lw @ zr[..., None])[..., 0])
     omega = _hac(scores, bandwidth)
     hac = A_inv @ omega @ A_inv
-    statistical = _floor(0.5 * (hac + hac.T), A_inv if weighted else _white_sandwich(A_inv, J, W))
+    statistical = _floor(0.5 * (hac + hac.T), white)
     return ArtefactCovariance(
         statistical=statistical,
         artefact=0.5 * (artefact + artefact.T),

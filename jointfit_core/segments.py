@@ -896,8 +896,12 @@ def _gauss_markov_centre(
     Wp6: FloatArray,
     Wc6: FloatArray,
     a0: FloatArray,
-) -> tuple[FloatArray, FloatArray]:
-    """Stoddart's appendix eq. (22)-(23), reweighted from ``a0`` and bias-compensated; returns (a, cov)."""
+) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+    """Stoddart's appendix eq. (22)-(23), reweighted from ``a0`` and bias-compensated.
+
+    Returns ``(a, cov, bread)``: ``bread`` is the noise's expected share of the normal matrix that was
+    removed (None when the first-order shift was used), see :func:`_debiased_weighted`.
+    """
     a = a0.copy()
     Qt = np.swapaxes(Q, -1, -2)
     cov = np.full((6, 6), np.nan)
@@ -924,16 +928,58 @@ def _gauss_markov_centre(
         a = a_new
         if step <= 1e-12 * scale:
             break
-    # Second-order bias of the estimating equation sum M^T W^-1 h under the pose noise (sigma points).
+    # Second-order bias of the estimating equation sum M^T W^-1 h under the pose noise (sigma points):
+    # with W held at the converged a, psi(a) = A a - b is linear in a, and so is its expected bias
+    # dA a - db; the corrected equation (A - dA) a = b - db is solved (see _debiased_weighted).
     Jp, Jc = _lever_jacobian(a[:3]), _lever_jacobian(a[3:])
     W_p = Jp @ Wp6 @ Jp.T
     W_c = Jc @ Wc6 @ Jc.T
     Qx, tx = _sigma_relative_poses(Q, t, noise_p, noise_c)
-    psi_x = _centre_psi(Qx, tx, a, W_p[:, None], W_c[:, None])
-    psi_0 = _centre_psi(Q, t, a, W_p, W_c)
-    expected = 0.5 * psi_x.sum(axis=(0, 1)) - 12.0 * psi_0.sum(axis=0)
-    a = a + cov @ expected
-    return a, 0.5 * (cov + cov.T)
+    A_x, b_x = _centre_normal_sums(Qx, tx, W_p[:, None], W_c[:, None])
+    A_0, b_0 = _centre_normal_sums(Q, t, W_p, W_c)
+    return _debiased_weighted(A_0, b_0, 0.5 * A_x - 12.0 * A_0, 0.5 * b_x - 12.0 * b_0, a, cov)
+
+
+def _centre_normal_sums(Q: FloatArray, t: FloatArray, W_p: FloatArray, W_c: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``A = sum M^T W^-1 M`` (6, 6) and ``b = sum M^T W^-1 t`` (6,) over every leading axis.
+
+    ``M = [I, -Q]`` and ``W = W_p + Q W_c Q^T`` for relative poses of shape (..., 3, 3), (..., 3), so
+    that :func:`_centre_psi` is ``A a - b`` summed.
+    """
+    Winv = _spd_inv(W_p + Q @ W_c @ np.swapaxes(Q, -1, -2))
+    WQ = Winv @ Q
+    A = np.empty((6, 6))
+    A[:3, :3] = Winv.sum(axis=tuple(range(Winv.ndim - 2)))
+    A[:3, 3:] = -WQ.sum(axis=tuple(range(WQ.ndim - 2)))
+    A[3:, :3] = A[:3, 3:].T
+    A[3:, 3:] = (np.swapaxes(Q, -1, -2) @ WQ).sum(axis=tuple(range(Q.ndim - 2)))
+    Wt = np.einsum("...ij,...j->...i", Winv, t)
+    b = np.concatenate([Wt, -np.einsum("...ji,...j->...i", Q, Wt)], axis=-1).reshape(-1, 6).sum(axis=0)
+    return A, b
+
+
+def _debiased_weighted(
+    A: FloatArray, b: FloatArray, dA: FloatArray, db: FloatArray, a: FloatArray, cov: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+    """The weighted centre pair and its covariance with the noise's expected ``dA a - db`` removed.
+
+    ``E[A a - b] = (A a - b)_noise-free + dA a - db`` to second order, so ``(A - dA) a = b - db`` is
+    unbiased; its covariance is the sandwich ``(A - dA)^-1 A (A - dA)^-1`` (``A``: the information of
+    the weighted equation). Unlike the first-order shift ``a + A^-1 (dA a - db)``, it stays right when
+    the noise's part of ``A``'s small eigenvalues is as large as the motion's (a long still stance and a
+    short movement: 19 s still and 1 s of movement put centres 5-8 sd off with the shift). Without
+    rotation beyond the noise (``A - dA`` not positive definite) the shift is used; the verdict then
+    says not identifiable. Returns ``(a, cov, dA)``, ``dA`` None when the shift was used.
+    """
+    A_c = 0.5 * ((A - dA) + (A - dA).T)
+    lam, V = np.linalg.eigh(A_c)
+    if lam[0] <= SINGULAR_REL * lam[-1]:
+        a = a + cov @ (dA @ a - db)
+        return a, 0.5 * (cov + cov.T), None
+    A_c_inv = (V / lam) @ V.T
+    a = A_c_inv @ (b - db)
+    out = A_c_inv @ A @ A_c_inv
+    return a, 0.5 * (out + out.T), 0.5 * (dA + dA.T)
 
 
 def _world_outputs(
@@ -984,6 +1030,7 @@ def _centre_artefact(
     Wp6: FloatArray,
     Wc6: FloatArray,
     attachment: tuple[str, str],
+    bread_correction: FloatArray | None = None,
 ) -> ArtefactCovariance:
     """The centre's statistical and soft-tissue covariance (skin markers; :func:`artefact_covariance`).
 
@@ -999,7 +1046,10 @@ def _centre_artefact(
     )
     W = _constraint_cov(Q, c_p, c_c, Wp6, Wc6)
     weights = deformation_weights(prep.pooled, (prep.sigma_parent, prep.sigma_child), attachment)
-    return artefact_covariance(h, J, D, W, joint_features(Q), (prep.template_parent, prep.template_child), weights)
+    return artefact_covariance(
+        h, J, D, W, joint_features(Q), (prep.template_parent, prep.template_child), weights,
+        bread_correction=bread_correction,
+    )
 
 
 def _whitened(r: FloatArray, W: FloatArray) -> FloatArray:
@@ -1214,15 +1264,16 @@ def fit_centre_two_segments(
     )
     a = np.concatenate([closed.centre_parent, closed.centre_child])
     cov = closed.cov
+    bread: FloatArray | None = None
     if weighted and prep.noisy:
         noise_p = pose_noise_local(prep.template_parent, prep.sigma_parent, vis_p)
         noise_c = pose_noise_local(prep.template_child, prep.sigma_child, vis_c)
-        a, cov = _gauss_markov_centre(Q, t, noise_p, noise_c, Wp6, Wc6, a)
+        a, cov, bread = _gauss_markov_centre(Q, t, noise_p, noise_c, Wp6, Wc6, a)
     c_p, c_c = a[:3], a[3:]
     stat: FloatArray | None = None
     scale = (0.0, 0.0)
     if model_error and skin and prep.noisy:
-        parts = _centre_artefact(prep, Q, t, c_p, c_c, Wp6, Wc6, att)
+        parts = _centre_artefact(prep, Q, t, c_p, c_c, Wp6, Wc6, att, bread)
         cov, stat, scale = parts.total, parts.statistical, (float(parts.scale[0]), float(parts.scale[1]))
     elif model_error:
         cov = cov * _model_error_inflation(prep, c_p, c_c, Wp6_mean, Wc6_mean).factor
