@@ -50,15 +50,21 @@ def _local_axis(est: OnlineJoint, motion: TwoSegmentMotion) -> tuple[FloatArray,
     return n, c - n * (n @ c)
 
 
+def _online(seed: int, kind: str, still: int, moving: int) -> tuple[OnlineJoint, TwoSegmentMotion]:
+    """An online estimator (rigid, whole-trial window) over a seeded rig's still stance and movement (60 Hz)."""
+    rng = np.random.default_rng(seed)
+    motion = two_segment_motion(rng, kind=kind)
+    yp, yc, t = _still_then_moving(rng, motion, still, moving, 60.0)
+    est = OnlineJoint(kind, window=t.size + 10)
+    est.update_many(yp, yc, t)
+    return est, motion
+
+
 def test_hinge_after_a_still_stance_is_calibrated() -> None:
     """25 s still, then 2 s of flexion (60 Hz): direction and off-axis point e/2 as a Monte-Carlo expects."""
     e_dir, e_point = [], []
     for seed in range(40):
-        rng = np.random.default_rng(seed)
-        motion = two_segment_motion(rng, kind="hinge")
-        yp, yc, t = _still_then_moving(rng, motion, 1500, 120, 60.0)
-        est = OnlineJoint("hinge", window=t.size + 10)
-        est.update_many(yp, yc, t)
+        est, motion = _online(seed, "hinge", 1500, 120)
         sol = est.estimate()
         assert isinstance(sol, PoseSumsAxis) and sol.identifiable, sol.reason
         n, point = _local_axis(est, motion)
@@ -80,11 +86,7 @@ def test_ball_after_a_still_stance_is_calibrated() -> None:
     """
     e = []
     for seed in range(60):
-        rng = np.random.default_rng(seed)
-        motion = two_segment_motion(rng, kind="ball")
-        yp, yc, t = _still_then_moving(rng, motion, 1160, 40, 60.0)
-        est = OnlineJoint("ball", window=t.size + 10)
-        est.update_many(yp, yc, t)
+        est, motion = _online(seed, "ball", 1160, 40)
         sol = est.estimate()
         assert isinstance(sol, PoseSumsCentre)
         if sol.identifiable:
