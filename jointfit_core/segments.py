@@ -880,14 +880,6 @@ def _sigma_relative_poses(
     return Qx, tx
 
 
-def _centre_psi(Q: FloatArray, t: FloatArray, a: FloatArray, W_p: FloatArray, W_c: FloatArray) -> FloatArray:
-    """Weighted estimating function ``M^T W^-1 h`` (..., 6) for relative poses of shape (..., 3, 3), (..., 3)."""
-    h = a[:3] - np.einsum("...ij,j->...i", Q, a[3:]) - t
-    W = W_p + Q @ W_c @ np.swapaxes(Q, -1, -2)
-    Wh = np.einsum("...ij,...j->...i", _spd_inv(W), h)
-    return np.concatenate([Wh, -np.einsum("...ji,...j->...i", Q, Wh)], axis=-1)
-
-
 def _gauss_markov_centre(
     Q: FloatArray,
     t: FloatArray,
@@ -944,7 +936,7 @@ def _centre_normal_sums(Q: FloatArray, t: FloatArray, W_p: FloatArray, W_c: Floa
     """``A = sum M^T W^-1 M`` (6, 6) and ``b = sum M^T W^-1 t`` (6,) over every leading axis.
 
     ``M = [I, -Q]`` and ``W = W_p + Q W_c Q^T`` for relative poses of shape (..., 3, 3), (..., 3), so
-    that :func:`_centre_psi` is ``A a - b`` summed.
+    that the weighted estimating function ``sum M^T W^-1 (M a - t)`` is ``A a - b``.
     """
     Winv = _spd_inv(W_p + Q @ W_c @ np.swapaxes(Q, -1, -2))
     WQ = Winv @ Q
