@@ -423,7 +423,7 @@ def artefact_covariance(
     white = A_inv if weighted else _white_sandwich(A_inv, J, W)
     if weighted and bread_correction is not None:
         A_b = A - 0.5 * (bread_correction + bread_correction.T)
-        if np.all(np.diag(A_b) > 0.0) and np.linalg.eigvalsh(A_b)[0] > 0.0:
+        if np.linalg.eigvalsh(A_b)[0] > 0.0:  # positive definite (so is its diagonal, for _inv_scaled)
             A_inv = _inv_scaled(A_b)
             white = A_inv @ A @ A_inv
             white = 0.5 * (white + white.T)

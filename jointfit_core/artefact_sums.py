@@ -40,8 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .artefact import NU_MIN
-from .hinge_from_sums import gauge_free_pinv, svd3
 from .pose import skew
+from .segments import gauge_free_pinv, svd3
 
 __all__ = [
     "N_FEATURE_MOMENTS",

@@ -26,10 +26,13 @@ from .segments import (
     _sums_meat,
     _sums_rms,
     debiased_sums,
+    first_order_bias_step,
+    gauge_free_pinv,
     noise_bias_matrices,
+    svd3,
 )
 
-__all__ = ["PoseSumsAxis", "axis_from_pose_sums", "gauge_free_pinv", "svd3"]
+__all__ = ["PoseSumsAxis", "axis_from_pose_sums"]
 
 FloatArray = NDArray[np.float64]
 
@@ -108,30 +111,6 @@ def _direction_covariance(
         L[3:, k - 1] += s[k] * v[k] / den
         L[3:, k + 1] += s[0] * v[k] / den
     out: FloatArray = L @ C @ L.T
-    return out
-
-
-def svd3(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """``U, s, V`` of a 3x3 matrix (``S = U diag(s) V^T``, singular values descending)."""
-    U, s, Vt = np.linalg.svd(S)
-    return U, s, Vt.T
-
-
-def gauge_free_pinv(U: FloatArray, s: FloatArray, V: FloatArray, n: float) -> FloatArray:
-    """Pseudo-inverse (6, 6) of ``H = [[N I, -S], [-S^T, N I]]`` without the gauge direction ``(u_0, v_0) / sqrt 2``.
-
-    ``H``'s eigenpairs are ``N -/+ s_k`` with ``(u_k, +/-v_k) / sqrt 2`` for ``S = U diag(s) V^T``.
-    """
-    E = []
-    lam = []
-    for k in range(3):
-        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
-            if k == 0 and sign > 0:
-                continue
-            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
-            lam.append(value)
-    Em = np.stack(E, axis=1)  # (6, 5)
-    out: FloatArray = (Em / np.asarray(lam)) @ Em.T
     return out
 
 
@@ -215,7 +194,8 @@ def axis_from_pose_sums(
         raise InputError(f"sums: expected at least 3 frames, got {n:g}")
     S = np.asarray(sums.S)
     K = np.asarray(sums.K)
-    deficit = np.clip(1.0 - np.linalg.svd(S, compute_uv=False) / n, 0.0, None)
+    raw = svd3(S)
+    deficit = np.clip(1.0 - raw[1] / n, 0.0, None)
     if deficit[1] <= SINGULAR_REL:
         raise NotIdentifiableError(
             "no relative rotation between the child and the parent: the hinge axis is undefined; flex the joint"
@@ -237,10 +217,8 @@ def axis_from_pose_sums(
         H_pinv = gauge_free_pinv(U, s, V, n)
         a = H_pinv @ g_c
     else:  # no rotation beyond the noise: the noisy equations and the ball's first-order step
-        H_pinv = gauge_free_pinv(*svd3(S), n)
-        a = H_pinv @ g
-        D_p, D_c = A_p @ a[:3], A_c @ a[3:]
-        a = a + H_pinv @ (-0.5 * np.concatenate([n * D_p + S @ D_c, S.T @ D_p + n * D_c]))
+        H_pinv = gauge_free_pinv(*raw, n)
+        a = first_order_bias_step(H_pinv @ g, H_pinv, S, n, A_p, A_c)
     c_p, c_c = a[:3], a[3:]
 
     # Sandwich covariance of the point pair (as centre_from_pose_sums, with the pseudo-inverse).

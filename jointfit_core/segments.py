@@ -59,7 +59,10 @@ __all__ = [
     "pose_sums_from_relative",
     "centre_from_pose_sums",
     "debiased_sums",
+    "first_order_bias_step",
+    "gauge_free_pinv",
     "noise_bias_matrices",
+    "svd3",
     "fit_centre_two_segments",
     "fit_axis_two_segments",
     "SINGULAR_REL",
@@ -510,6 +513,44 @@ def _sums_rms(sums: PoseSums, c_p: FloatArray, c_c: FloatArray) -> float:
     return float(np.sqrt(max(float(ss), 0.0) / n))
 
 
+def svd3(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``U, s, V`` of a 3x3 matrix (``S = U diag(s) V^T``, singular values descending)."""
+    U, s, Vt = np.linalg.svd(S)
+    return U, s, Vt.T
+
+
+def gauge_free_pinv(U: FloatArray, s: FloatArray, V: FloatArray, n: float) -> FloatArray:
+    """Pseudo-inverse (6, 6) of ``H = [[N I, -S], [-S^T, N I]]`` without the gauge direction ``(u_0, v_0) / sqrt 2``.
+
+    ``H``'s eigenpairs are ``N -/+ s_k`` with ``(u_k, +/-v_k) / sqrt 2`` for ``S = U diag(s) V^T``.
+    """
+    E = []
+    lam = []
+    for k in range(3):
+        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
+            if k == 0 and sign > 0:
+                continue
+            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
+            lam.append(value)
+    Em = np.stack(E, axis=1)  # (6, 5)
+    out: FloatArray = (Em / np.asarray(lam)) @ Em.T
+    return out
+
+
+def first_order_bias_step(
+    a: FloatArray, H_inv: FloatArray, S: FloatArray, n: float, A_p: FloatArray, A_c: FloatArray
+) -> FloatArray:
+    """``a`` (6,) shifted by ``H_inv`` times the estimating equation's second-order noise bias.
+
+    The bias is ``-(1/2) [N A_p c_p + S A_c c_c; S^T A_p c_p + N A_c c_c]`` (see
+    :func:`centre_from_pose_sums`); right to first order, used only where the corrected
+    normal equations of :func:`debiased_sums` have no rotation beyond the noise to solve.
+    """
+    D_p, D_c = A_p @ a[:3], A_c @ a[3:]
+    out: FloatArray = a + H_inv @ (-0.5 * np.concatenate([n * D_p + S @ D_c, S.T @ D_p + n * D_c]))
+    return out
+
+
 def noise_bias_matrices(
     Wp6: FloatArray, Wc6: FloatArray, W_bias: tuple[ArrayLike, ArrayLike] | None = None
 ) -> tuple[FloatArray, FloatArray]:
@@ -666,8 +707,7 @@ def centre_from_pose_sums(
             H_inv = (V_c / lam_c) @ V_c.T
             a = H_inv @ g_c
         else:  # no rotation beyond the noise: the first-order step (the verdict says not identifiable)
-            D_p, D_c = A_p @ a[:3], A_c @ a[3:]
-            a = a + H_inv @ (-0.5 * np.concatenate([n * D_p + S @ D_c, S.T @ D_p + n * D_c]))
+            a = first_order_bias_step(a, H_inv, S, n, A_p, A_c)
     c_p, c_c = a[:3], a[3:]
 
     cov = H_inv @ _sums_meat(sums, c_p, c_c, Wp6, Wc6) @ H_inv
@@ -1681,29 +1721,20 @@ def fit_axis_two_segments(
     Q, t = prep.Q[used], prep.t[used]
     n = float(used.sum())
     S = Q.sum(axis=0)
-    U, s, Vt = np.linalg.svd(S)
+    U, s, V = svd3(S)
     deficit = np.clip(1.0 - s / n, 0.0, None)
     if deficit[1] <= SINGULAR_REL:
         raise NotIdentifiableError(
             "no relative rotation between the child and the parent: the hinge axis is undefined; flex the joint"
         )
-    n_p, n_c = U[:, 0].copy(), Vt[0].copy()
+    n_p, n_c = U[:, 0].copy(), V[:, 0].copy()
     ref = _axis_reference(reference_direction, n_p)
     if n_p @ ref < 0.0:
         n_p, n_c = -n_p, -n_c
 
     # Closed-form axis-point pair: pseudo-inverse of H in the complement of (n_p, n_c).
-    # H has eigenvectors (u_k, v_k)/sqrt2 (eigenvalue N - s_k) and (u_k, -v_k)/sqrt2 (N + s_k).
     g = np.concatenate([t.sum(axis=0), -np.einsum("nji,nj->i", Q, t)])
-    V = Vt.T
-    a = np.zeros(6)
-    for k in range(3):
-        for sign, lam in ((1.0, n - s[k]), (-1.0, n + s[k])):
-            if k == 0 and sign > 0:
-                continue  # the gauge direction (n_p, n_c)
-            e = np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0)
-            a += e * (e @ g) / lam
-    st = _HingeState(n_p, n_c, a)
+    st = _HingeState(n_p, n_c, gauge_free_pinv(U, s, V, n) @ g)
 
     vis_p, vis_c = prep.poses_parent.visible[used], prep.poses_child.visible[used]
     Wp6 = pose_covariance_local(prep.template_parent, prep.sigma_parent, vis_p)

@@ -223,7 +223,7 @@ def _sphere_residuals(cm: CentralMoments, centre_rel: FloatArray) -> tuple[Float
     return ss_p, r2
 
 
-def _noise_from_residuals(cm: CentralMoments, ss_min: float, r2: FloatArray, n_fitted: int) -> float:
+def _noise_from_residuals(cm: CentralMoments, ss_fit: float, r2: FloatArray, n_fitted: int) -> float:
     """Noise variance per coordinate from the algebraic residual sum at a fitted centre.
 
     Solves ``6 D s2^2 - 4 T s2 + SS D / (D - n_fitted) = 0`` for its smaller
@@ -235,7 +235,7 @@ def _noise_from_residuals(cm: CentralMoments, ss_min: float, r2: FloatArray, n_f
     t_sum = float((cm.dof * r2)[cm.used].sum())
     if t_sum <= 0.0:
         return 0.0
-    ss = ss_min * dof_total / (dof_total - n_fitted)
+    ss = ss_fit * dof_total / (dof_total - n_fitted)
     disc = 16.0 * t_sum * t_sum - 24.0 * dof_total * ss
     s2 = (4.0 * t_sum - np.sqrt(max(disc, 0.0))) / (12.0 * dof_total)
     return max(float(s2), 0.0)
