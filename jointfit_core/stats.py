@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .ring_replay import RingBlockReplay
+from .window_spec import WindowSpec, window_spec
 
 __all__ = ["WindowSpec", "SlidingSums", "window_spec"]
 
@@ -45,101 +46,6 @@ RefFn = Callable[[FloatArray, FloatArray], "FloatArray | None"]
 
 #: Under exponential forgetting, check every this many frames whether to move the reference point.
 _REREF_EVERY = 256
-#: Op code of "no row" in :meth:`SlidingSums.push_many`'s replay (row codes are absolute frame indices >= 0,
-#: or -1 - k for the k-th summed group of rows).
-_NO_ROW = -(2**62)
-
-
-@dataclass(frozen=True)
-class WindowSpec:
-    """Which frames the sums cover. Exactly one field is set.
-
-    Attributes
-    ----------
-    frames : int or None
-        The last ``frames`` accepted frames.
-    seconds : float or None
-        Frames whose stamp is within ``seconds`` of the newest stamp
-        (``stamp > newest - seconds``); needs stamps.
-    half_life : float or None
-        Exponential forgetting: a frame's weight halves every ``half_life``
-        frames. ``inf``: no forgetting, the sums of every frame since the
-        start, in O(1) memory (what ``jointfit fit`` uses for a whole
-        recording).
-    half_life_s : float or None
-        Exponential forgetting in time: a frame's weight halves every
-        ``half_life_s`` seconds of stamp time; needs stamps.
-    """
-
-    frames: int | None = None
-    seconds: float | None = None
-    half_life: float | None = None
-    half_life_s: float | None = None
-
-    @property
-    def exponential(self) -> bool:
-        """True for exponential forgetting (no ring buffer)."""
-        return self.half_life is not None or self.half_life_s is not None
-
-    @property
-    def needs_stamps(self) -> bool:
-        """True when every update must carry a stamp."""
-        return self.seconds is not None or self.half_life_s is not None
-
-    def describe(self) -> str:
-        """Short human-readable form, e.g. ``"500 frames"``."""
-        if self.frames is not None:
-            return f"{self.frames} frames"
-        if self.seconds is not None:
-            return f"{self.seconds:g} s"
-        if self.half_life == np.inf or self.half_life_s == np.inf:
-            return "all frames (no forgetting)"
-        if self.half_life is not None:
-            return f"half-life {self.half_life:g} frames"
-        return f"half-life {self.half_life_s:g} s"
-
-
-def window_spec(
-    window: int | None = None,
-    *,
-    window_s: float | None = None,
-    half_life: float | None = None,
-    half_life_s: float | None = None,
-) -> WindowSpec:
-    """Check and build a :class:`WindowSpec` from the estimators' keyword arguments.
-
-    Raises
-    ------
-    InputError
-        Not exactly one of the four given, or a value that is not positive
-        (``window`` must be an integer >= 3).
-    """
-    given = {
-        k: v
-        for k, v in (("window", window), ("window_s", window_s), ("half_life", half_life), ("half_life_s", half_life_s))
-        if v is not None
-    }
-    if len(given) != 1:
-        raise InputError(
-            "window: give exactly one of window (frames), window_s (seconds), half_life (frames) or "
-            f"half_life_s (seconds), got {sorted(given) or 'none'}"
-        )
-    name, value = next(iter(given.items()))
-    if name == "window":
-        if isinstance(value, bool) or not float(value).is_integer() or int(value) < 3:
-            raise InputError(f"window: expected an integer number of frames >= 3, got {value!r}")
-        return WindowSpec(frames=int(value))
-    try:
-        num = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: expected a positive number, got {value!r}") from None
-    if np.isnan(num) or num <= 0.0 or (num == np.inf and name == "window_s"):
-        raise InputError(f"{name}: expected a positive finite number (half-lives may be inf), got {value!r}")
-    if name == "window_s":
-        return WindowSpec(seconds=num)
-    if name == "half_life":
-        return WindowSpec(half_life=num)
-    return WindowSpec(half_life_s=num)
 
 
 class SlidingSums:
@@ -428,161 +334,14 @@ class SlidingSums:
             self._counts_sq = w_old * w_old * self._counts_sq + (w * w) @ (c[:, self._count_index] ** 2)
 
     def _push_many_ring(self, c: FloatArray, st: FloatArray | None) -> None:
-        """Exact replay of :meth:`_push_contrib` over a block (see :meth:`push_many`)."""
-        m = c.shape[0]
-        lo0, h0 = self._lo, self._hi
-        cap0 = self._rec.shape[0]
-        hi_before = h0 + np.arange(m)  # hi before each push
-        # lo after each push (absolute indices)
-        if self.spec.frames is not None:
-            cand = hi_before + 1 - self.spec.frames
-        else:
-            assert st is not None
-            horizon = st - float(self.spec.seconds)  # type: ignore[arg-type]
-            count = np.searchsorted(st, horizon, side="right")  # new frames at or before the horizon
-            for seg in self._ring_stamp_segments():
-                count = count + np.searchsorted(seg, horizon, side="right")
-            cand = np.minimum(lo0 + count, hi_before)
-            cand = np.maximum(cand, hi_before + 1 - self._max_frames)
-        lo_after = np.maximum.accumulate(np.maximum(cand, lo0))
-        lo_before = np.empty(m, dtype=np.int64)
-        lo_before[0] = lo0
-        lo_before[1:] = lo_after[:-1]
-        cap = cap0
-        if self.spec.seconds is not None:
-            size = int((hi_before + 1 - lo_after).max())
-            while cap < size and cap < self._max_frames:
-                cap = min(2 * cap, self._max_frames)
-
-        extras: list[FloatArray] = []  # sums of several leaving rows, (n, L) each; coded -1 - position overall
-
-        def fill(dst: FloatArray, codes: NDArray[np.int64], sign: float) -> None:
-            """``dst[i] = sign * row(codes[i])``: rows by absolute index (the ring before this block, or
-            the block), summed groups, or -0.0 (adding it changes nothing, bit for bit) for ``_NO_ROW``."""
-            a, b = int(codes[0]), int(codes[-1])
-            src: FloatArray | None = None
-            if a >= 0 and b - a == codes.size - 1 and (codes.size < 3 or bool((np.diff(codes) == 1).all())):
-                # consecutive frames (the common case): slices
-                if a >= h0:
-                    src = c[a - h0 : b - h0 + 1]
-                elif b < h0 and a % cap0 <= b % cap0:
-                    src = self._rec[a % cap0 : b % cap0 + 1]
-            if src is not None:
-                if sign < 0.0:
-                    np.negative(src, out=dst)
-                else:
-                    dst[...] = src
-                return
-            new = codes >= h0
-            old = np.flatnonzero((codes >= 0) & ~new)
-            got = np.flatnonzero(new)
-            summed = np.flatnonzero((codes < 0) & (codes != _NO_ROW))
-            if old.size:
-                dst[old] = self._rec.take(codes[old] % cap0, axis=0)
-            if got.size:
-                dst[got] = c.take(codes[got] - h0, axis=0)
-            if summed.size:
-                dst[summed] = np.concatenate(extras)[-1 - codes[summed]]
-            if sign < 0.0:
-                np.negative(dst, out=dst)
-            dst[codes == _NO_ROW] = -0.0
-
-        def group_codes(
-            steps: NDArray[np.int64], next_before: NDArray[np.int64] | None = None, end: int = 0
-        ) -> NDArray[np.int64]:
-            """Codes of the sums of the frames leaving at each of ``steps`` (with ``next_before``: only
-            those the shadow holds), summed as :meth:`_push_contrib` sums them (``rec[rows].sum(axis=0)``,
-            row after row; the frames left out are -0.0 rows, which change nothing)."""
-            first = lo_before[steps]
-            width = int((lo_after[steps] - first).max())
-            idx = first[:, None] + np.arange(width)
-            ok = idx < lo_after[steps][:, None]
-            if next_before is not None:
-                ok &= (idx < next_before[:, None]) | (idx >= end)
-            buf = np.empty((idx.size, self.n_sums))
-            fill(buf, np.where(ok, idx, _NO_ROW).ravel(), 1.0)
-            base = sum(e.shape[0] for e in extras)
-            extras.append(buf.reshape(steps.size, width, self.n_sums).sum(axis=1))
-            return -1 - (base + np.arange(steps.size, dtype=np.int64))
-
-        n_leave = lo_after - lo_before
-
-        def reduce(start: FloatArray, columns: list[tuple[NDArray[np.int64], float]]) -> FloatArray:
-            """``start`` plus, step after step, each column's row times its sign, added one after the other."""
-            used = [(codes, sign) for codes, sign in columns if codes.size and (codes != _NO_ROW).any()]
-            n = columns[0][0].size if used else 0
-            block = np.empty((1 + n * len(used), self.n_sums))
-            block[0] = start
-            grid = block[1:].reshape(n, len(used), self.n_sums)
-            for j, (codes, sign) in enumerate(used):
-                fill(grid[:, j], codes, sign)
-            out: FloatArray = np.add.reduce(block, axis=0)
-            return out
-
-        def sums_columns(a: int) -> list[tuple[NDArray[np.int64], float]]:
-            """The live sums' operations of steps a .. m-1: + the new frame, - the leaving ones."""
-            steps = np.arange(a, m)
-            leave = np.where(n_leave[steps] == 1, lo_before[steps], _NO_ROW)
-            several = n_leave[steps] > 1
-            if several.any():
-                leave[several] = group_codes(steps[several])
-            return [(h0 + steps, 1.0), (leave, -1.0)]
-
-        # The shadow's schedule, cycle by cycle.
-        sums_start = self.sums
-        sums_from = 0  # first step whose live-sum operations count (after the last replacement)
-        active, nxt, end = self._shadow_active, self._shadow_next, self._shadow_end
-        shadow_start = self._shadow
-        k = 0
-        if not active:  # the very first push: no shadow yet
-            nxt, end, shadow_start, k, active = int(lo_after[0]), h0 + 1, np.zeros(self.n_sums), 1, True
-        shadow = shadow_start
-        while k < m:
-            steps = np.arange(k, m)
-            # next after each step, while the rebuild continues: u_j = max(u_{j-1}, lo_j + 1 - j)
-            u = np.maximum.accumulate(np.concatenate([[nxt - (k - 1)], lo_after[k:] + 1 - steps]))[1:]
-            next_after = u + steps
-            done = np.flatnonzero(next_after >= end)
-            last = k + int(done[0]) if done.size else m - 1
-            cyc = np.arange(k, last + 1)
-            next_before = np.concatenate([[nxt], next_after[: last - k]])
-            m_j = np.maximum(next_before, lo_after[cyc])
-            rebuild = np.where(m_j < end, m_j, _NO_ROW)
-            # leaving frames the shadow holds: rebuilt already, or added since the rebuild began
-            first = lo_before[cyc]
-            one = (n_leave[cyc] == 1) & ((first < next_before) | (first >= end))
-            inside = np.where(one, first, _NO_ROW)
-            several = n_leave[cyc] > 1
-            if several.any():
-                inside[several] = group_codes(cyc[several], next_before[several], end)
-            shadow = reduce(shadow_start, [(h0 + cyc, 1.0), (inside, -1.0), (rebuild, 1.0)])
-            if done.size:  # the rebuild has covered the window: it replaces the live sums
-                sums_start, sums_from = shadow, last + 1
-                nxt, end = int(lo_after[last]), int(h0 + last + 1)
-                shadow_start = shadow = np.zeros(self.n_sums)
-            else:
-                nxt = int(next_after[-1])
-            k = last + 1
-        self.sums = reduce(sums_start, sums_columns(sums_from))
-        self._shadow, self._shadow_next, self._shadow_end, self._shadow_active = shadow, nxt, end, active
-
-        # Store the frames that stay, in a ring grown as the pushes would have grown it.
-        lo_end, hi_end = int(lo_after[-1]), h0 + m
-        if cap != cap0:
-            keep_old = np.arange(max(lo0, lo_end), h0)
-            rec = np.empty((cap, self._width))
-            stamp = np.empty(cap)
-            rec[keep_old % cap] = self._rec[keep_old % cap0]
-            stamp[keep_old % cap] = self._stamp[keep_old % cap0]
-            self._rec, self._stamp = rec, stamp
-        at = max(lo_end, h0)
-        while at < hi_end:  # at most two slices (the ring wraps once)
-            slot = at % cap
-            stop = min(hi_end, at + cap - slot)
-            self._rec[slot : slot + stop - at] = c[at - h0 : stop - h0]
-            self._stamp[slot : slot + stop - at] = np.nan if st is None else st[at - h0 : stop - h0]
-            at = stop
-        self._lo, self._hi = lo_end, hi_end
+        """Exact replay of :meth:`_push_contrib` over a block (see :meth:`push_many`; :mod:`~jointfit_core.ring_replay`)."""
+        replay = RingBlockReplay(
+            c, st, self.spec, self._lo, self._hi, self._rec, self._stamp, self._max_frames, self._ring_stamp_segments()
+        )
+        # the sums first: they read the ring as it was before the block, which stored_ring then overwrites
+        state = (self.sums, self._shadow, self._shadow_active, self._shadow_next, self._shadow_end)
+        self.sums, self._shadow, self._shadow_active, self._shadow_next, self._shadow_end = replay.sums_and_shadow(state)
+        self._rec, self._stamp, self._lo, self._hi = replay.stored_ring()
 
     def _ring_stamp_segments(self) -> list[FloatArray]:
         """The window's stamps as (at most two) contiguous pieces of the ring, oldest first."""
