@@ -514,26 +514,27 @@ def _sums_rms(sums: PoseSums, c_p: FloatArray, c_c: FloatArray) -> float:
 
 
 def svd3(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """``U, s, V`` of a 3x3 matrix (``S = U diag(s) V^T``, singular values descending)."""
+    """``U, s, V`` of 3x3 matrices ``S`` (..., 3, 3) (``S = U diag(s) V^T``, singular values descending)."""
     U, s, Vt = np.linalg.svd(S)
-    return U, s, Vt.T
+    return U, s, np.swapaxes(Vt, -1, -2)
+
+
+#: :func:`gauge_free_pinv`'s eigenpairs of ``H``: singular pair ``k`` and sign (``+``: ``N - s_k``, ``-``: ``N + s_k``),
+#: every pair but the gauge ``(u_0, v_0)``.
+_GAUGE_FREE_K = np.array([0, 1, 1, 2, 2])
+_GAUGE_FREE_SIGN = np.array([-1.0, 1.0, -1.0, 1.0, -1.0])
 
 
 def gauge_free_pinv(U: FloatArray, s: FloatArray, V: FloatArray, n: float) -> FloatArray:
-    """Pseudo-inverse (6, 6) of ``H = [[N I, -S], [-S^T, N I]]`` without the gauge direction ``(u_0, v_0) / sqrt 2``.
+    """Pseudo-inverse (..., 6, 6) of ``H = [[N I, -S], [-S^T, N I]]`` without the gauge direction ``(u_0, v_0) / sqrt 2``.
 
-    ``H``'s eigenpairs are ``N -/+ s_k`` with ``(u_k, +/-v_k) / sqrt 2`` for ``S = U diag(s) V^T``.
+    ``H``'s eigenpairs are ``N -/+ s_k`` with ``(u_k, +/-v_k) / sqrt 2`` for ``S = U diag(s) V^T``
+    (:func:`svd3`: ``U``, ``V`` (..., 3, 3), ``s`` (..., 3); any leading axes).
     """
-    E = []
-    lam = []
-    for k in range(3):
-        for sign, value in ((1.0, n - s[k]), (-1.0, n + s[k])):
-            if k == 0 and sign > 0:
-                continue
-            E.append(np.concatenate([U[:, k], sign * V[:, k]]) / np.sqrt(2.0))
-            lam.append(value)
-    Em = np.stack(E, axis=1)  # (6, 5)
-    out: FloatArray = (Em / np.asarray(lam)) @ Em.T
+    k, sign = _GAUGE_FREE_K, _GAUGE_FREE_SIGN
+    Em = np.concatenate([U[..., :, k], V[..., :, k] * sign], axis=-2) / np.sqrt(2.0)  # (..., 6, 5)
+    lam = n - sign * s[..., k]
+    out: FloatArray = (Em / lam[..., None, :]) @ np.swapaxes(Em, -1, -2)
     return out
 
 

@@ -14,6 +14,7 @@ The sums' layout is :mod:`jointfit_core.joint_sums`'.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -23,6 +24,7 @@ from .artefact_sums import (
     SumsArtefact,
     artefact_from_sums,
     ball_parameters,
+    ball_parameters_jacobian,
     hinge_parameters,
 )
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
@@ -387,19 +389,23 @@ def _sums_artefact(
     n = float(sums.n)
     S, st, sqt = np.asarray(sums.S), np.asarray(sums.sum_t), np.asarray(sums.sum_qt_t)
     weights = (float(request.attachment[0] == "skin"), float(request.attachment[1] == "skin"))
+    jacobian: Callable[[FloatArray], FloatArray] | None = None
     if isinstance(sol, PoseSumsCentre):
-        def solver(x: FloatArray) -> FloatArray:
-            return ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:])
+        def solver(X: FloatArray) -> FloatArray:
+            return np.stack([ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:]) for x in X])
+
+        def jacobian(x: FloatArray) -> FloatArray:
+            return ball_parameters_jacobian(n, x[:9].reshape(3, 3), x[9:12], x[12:])
     else:
         ref = sol.direction_parent.copy()
 
-        def solver(x: FloatArray) -> FloatArray:
-            return hinge_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:], ref)
+        def solver(X: FloatArray) -> FloatArray:
+            return hinge_parameters(n, X[:, :9].reshape(-1, 3, 3), X[:, 9:12], X[:, 12:], ref)
     directions = None if isinstance(sol, PoseSumsCentre) else (sol.direction_parent, sol.direction_child)
     fs = request.sums[_FS] if directions is None else np.concatenate([request.sums[_FS], request.sums[_FM]])
     return artefact_from_sums(
         fs, n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions,
-        rotation_smooth, rotation_ss,
+        rotation_smooth, rotation_ss, jacobian,
     )
 
 

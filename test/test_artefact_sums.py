@@ -41,11 +41,11 @@ def _reading(Q: FloatArray, white: float) -> tuple[float, float]:
     S, st, sqt = Q.sum(axis=0), t.sum(axis=0), np.einsum("nji,nj->i", Q, t)
     ref = np.linalg.svd(S)[0][:, 0]
 
-    def solver(x: FloatArray) -> FloatArray:
-        return sums_mod.hinge_parameters(float(n), x[:9].reshape(3, 3), x[9:12], x[12:], ref)
+    def solver(X: FloatArray) -> FloatArray:
+        return sums_mod.hinge_parameters(float(n), X[:, :9].reshape(-1, 3, 3), X[:, 9:12], X[:, 12:], ref)
 
     x0 = np.concatenate([S.ravel(), st, sqt])
-    params = solver(x0)
+    params = solver(x0[None])[0]
     n_p, n_c = params[:3], params[3:6]
     SQ, ST, SP, _ = sums_mod._centred(fs, float(n), S, st, sqt)
     delta = sums_mod._sum_perturbations(SQ, ST, SP).reshape(15, 108)
@@ -133,3 +133,24 @@ def test_alignment_reading_is_unbiased_in_the_model_and_blind_outside_it() -> No
     mean, sd_mean = float(np.mean(inside)), float(np.std(inside, ddof=1)) / np.sqrt(len(inside))
     assert abs(mean - 1.0) < 3.0 * sd_mean, (mean, sd_mean)
     assert float(np.mean(outside)) < 0.15, float(np.mean(outside))
+
+
+def test_ball_parameters_jacobian_is_the_derivative_of_the_ball_solution() -> None:
+    """The analytic Jacobian of eq. 9's centre pair equals central differences (it replaced them in every skin solve)."""
+    rng = np.random.default_rng(4)
+    Q = Rotation.from_rotvec(rng.normal(scale=0.4, size=(300, 3))).as_matrix()
+    t = C_P - Q @ C_C + rng.normal(scale=2.0, size=(300, 3))
+    n = float(Q.shape[0])
+    S, st, sqt = Q.sum(axis=0), t.sum(axis=0), np.einsum("nji,nj->i", Q, t)
+    x0 = np.concatenate([S.ravel(), st, sqt])
+
+    def solver(X: FloatArray) -> FloatArray:
+        return np.stack([sums_mod.ball_parameters(n, x[:9].reshape(3, 3), x[9:12], x[12:]) for x in X])
+
+    steps = np.concatenate([np.full(9, n), np.full(6, n * 400.0)])
+    numeric = sums_mod._jacobian(solver, x0, steps)
+    analytic = sums_mod.ball_parameters_jacobian(n, S, st, sqt)
+    assert analytic.shape == (6, 15)
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-9 * float(np.abs(numeric).max()))
+    # and the solution it differentiates is eq. 9's, about the true centre pair
+    np.testing.assert_allclose(solver(x0[None])[0], np.concatenate([C_P, C_C]), atol=1.0)
