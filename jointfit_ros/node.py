@@ -34,6 +34,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
@@ -76,6 +77,7 @@ from .runner import ERROR, OK, STALE, WARN, JointRunner
 from .segment_output import SegmentOutput
 from .solver_process import SolverProcess
 from .status_log import StatusLog
+from .stop_request import StopRequest
 from .tf_output import TfOutput
 
 __all__ = ["JointfitNode", "main"]
@@ -709,8 +711,16 @@ def main(args: list[str] | None = None) -> None:
     if {"-h", "--help"} & set(argv[:ros_at]):
         print(USAGE, end="")
         raise SystemExit(0)
+    with StopRequest() as stop:
+        _run(args, argv, stop)
+
+
+def _run(args: list[str] | None, argv: list[str], stop: StopRequest) -> None:
+    """Start rclpy and the node, spin until ``stop`` is requested (SIGINT, SIGTERM) or rclpy shuts down."""
     try:
-        rclpy.init(args=args)
+        # rclpy's own handlers would raise KeyboardInterrupt inside whatever callback runs (a FATAL and a
+        # traceback from the executor): SIGINT and SIGTERM are StopRequest's, read between callbacks
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RCLError as exc:  # an unreadable --params-file, a bad remap: rcl's message without its source lines
         print(f"jointfit_node: cannot start: {_rcl_message(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -729,16 +739,16 @@ def main(args: list[str] | None = None) -> None:
         executor = _executor()
         executor.add_node(node)
         # spin_once in a loop: with this rclpy, EventsExecutor.spin() stops firing timers.
-        while rclpy.ok():
+        while rclpy.ok() and not stop.requested:
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
         if rclpy.ok():
             raise
-        # SIGINT / SIGTERM while the node was starting: rclpy's handler shut the context down under
-        # it, and whatever rcl call came next failed (e.g. "error creating node: the given context is
-        # not valid"); that is the stop asked for, not an error
+        # the context shut down while the node was starting (another owner of the context, or rclpy's
+        # handlers where StopRequest could not install its own), and whatever rcl call came next failed
+        # (e.g. "error creating node: the given context is not valid"): a stop, not an error
         print("jointfit_node: stopped while starting", file=sys.stderr)
     finally:
         if node is not None:
