@@ -181,7 +181,7 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "solver_process",
         "bool",
         True,
-        "Solve the estimates in a worker process, so that a solve (0.3-0.4 ms per joint, 2-3 ms with attachment "
+        "Solve the estimates in a worker process, so that a solve (0.3-0.4 ms per joint, 0.7-1.8 ms with attachment "
         "skin) does not delay the frames arriving meanwhile; every joint's due window goes to it in one request. "
         "False: on the executor thread, one joint per estimate tick (one process). Set at start.",
     ),
