@@ -8,6 +8,9 @@ its outer product, the pose-noise terms of the visible marker sets, the lag
 pairs, the soft-tissue feature sums and the movement) and pushes it into the
 sliding window (:class:`~jointfit_core.stats.SlidingSums`). Posing and gating
 the segments happen before it; solving reads :attr:`RelativePoseSums.window`.
+A frame fed alone is queued and summed with the frames after it as a block
+(one code path for the live and the offline feed, vectorised over the queue),
+before anything reads the sums.
 
 The layout of the sums vector is defined here (``_Z`` ... ``_FM``); the solve
 (:func:`~jointfit_core.estimator.solve_window`) reads it.
@@ -16,11 +19,12 @@ The layout of the sums vector is defined here (``_Z`` ... ``_FM``); the solve
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .artefact_sums import N_FEATURE_MOMENTS, N_FEATURE_SUMS, feature_sums, feature_sums_into
+from .artefact_sums import N_FEATURE_MOMENTS, N_FEATURE_SUMS, feature_sums
 from .errors import InputError
 from .segment_pair import PairSet
 from .serial import (
@@ -35,7 +39,7 @@ from .serial import (
 from .stats import SlidingSums, WindowSpec
 from .white_noise_sums import SecondDifferences
 
-__all__ = ["MOVING_DEG", "RelativePoseSums", "moving_seconds"]
+__all__ = ["MOVING_DEG", "PENDING_MAX", "RelativePoseSums", "moving_seconds"]
 
 FloatArray = NDArray[np.float64]
 
@@ -88,6 +92,30 @@ def moving_seconds(lagged: FloatArray) -> FloatArray:
     return out
 
 
+#: Most frames :meth:`RelativePoseSums.add_frame` queues before it sums them (the node reads the sums
+#: every estimate period, which sums the queue sooner: 10 frames at 100 Hz).
+PENDING_MAX = 64
+
+
+@dataclass(frozen=True, eq=False)
+class _PendingFrame:
+    """One frame queued by :meth:`RelativePoseSums.add_frame` (copies)."""
+
+    R: FloatArray  # (2, 3, 3)
+    d: FloatArray  # (2, 3)
+    ss: FloatArray  # (2,)
+    pairs: PairSet
+    stamp: float | None
+    frame_no: int
+    Y: FloatArray | None  # (2, Pmax, 3)
+    chained: bool  # carries its lag pair with the frame added before it
+
+    @property
+    def kind(self) -> tuple[bool, bool]:
+        """Frames of one kind are summed in one block: (has a stamp, has markers)."""
+        return (self.stamp is not None, self.Y is not None)
+
+
 class RelativePoseSums:
     """A joint's sliding window of relative-pose sums, fed frame by frame or block by block.
 
@@ -115,7 +143,8 @@ class RelativePoseSums:
         self._skin = skin
         self._moments = moments
         self.n_sums = _N_SUMS_HINGE if moments else _N_SUMS
-        self.window: SlidingSums | None = None
+        self._sums: SlidingSums | None = None
+        self._pending: list[_PendingFrame] = []  # frames added, not yet summed (add_frame)
         self.chained = False
         c = np.zeros(self.n_sums)
         c[0] = 1.0
@@ -136,10 +165,22 @@ class RelativePoseSums:
         self._wn_view = c[_WN]
         self._second = SecondDifferences()  # skin: the white-noise sums' last two frames
 
+    @property
+    def window(self) -> SlidingSums | None:
+        """The window's sums, every frame added so far in them (None until a frame entered)."""
+        if self._pending:
+            self.flush()
+        return self._sums
+
     def _window(self) -> SlidingSums:
-        if self.window is None:
-            self.window = SlidingSums(self.spec, self.n_sums, self.n_sums, None)
-        return self.window
+        if self._sums is None:
+            self._sums = SlidingSums(self.spec, self.n_sums, self.n_sums, None)
+        return self._sums
+
+    @property
+    def n_pending(self) -> int:
+        """Frames added by :meth:`add_frame` and not summed yet (:meth:`flush` sums them)."""
+        return len(self._pending)
 
     def add_frame(
         self,
@@ -151,7 +192,7 @@ class RelativePoseSums:
         frame_no: int,
         Y: FloatArray | None = None,
     ) -> None:
-        """Push one frame whose two segments are posed.
+        """Add one frame whose two segments are posed (summed at the next :meth:`flush`).
 
         Parameters
         ----------
@@ -170,41 +211,61 @@ class RelativePoseSums:
         Y : ndarray, shape (2, Pmax, 3), optional
             Both segments' markers (input units): skin markers' white-noise sums
             (:class:`~jointfit_core.white_noise_sums.SecondDifferences`); without it they add nothing.
+
+        Notes
+        -----
+        The frame is copied into a queue and summed with the frames queued after it by
+        :meth:`add_block` (one code path for frames and blocks, vectorised over the queue): at
+        the latest after :data:`PENDING_MAX` frames, and whenever the sums are read
+        (:attr:`window`, :meth:`entered` and the readers built on them), so that a reader never
+        sees a sum without the frames added before. A live frame's outputs do not depend on the
+        sums, so the node publishes them without this work.
         """
-        c = self._contribution
-        z = self._z_view
-        x = self._x_buf
-        x[:, :3] = R[1]
-        np.subtract(d[1], d[0], out=x[:, 3])
-        np.matmul(R[0].T, x, out=z)  # [Q | t] = R_p^T [R_c | d_c - d_p]
-        zf = self._zf_view
-        np.multiply.outer(zf, zf, out=self._outer_view)
-        if pairs is not self._pairs:  # (the pose covariances and dofs are the pair set's: written when it changes)
-            c[_W] = pairs.W_flat
-            c[_SS + 1 : _SS + 4 : 2] = pairs.dof
-            self._pairs = pairs
-        c[_SS : _SS + 4 : 2] = ss
-        if self._skin:
-            feature_sums_into(z, self._fs_view, self._fm_view)
-            if Y is not None:
-                self._second.add_one(Y, pairs, R, d, self.chained, self._wn_view)
-            else:
-                self._wn_view[:] = 0.0
-        # The lag pair (previous frame in the statistics, this one), stored with this frame.
-        if self.chained:
-            c[_LAG] = 1.0
-            np.add(z, self._z_prev, out=self._pair_view)
-            np.matmul(z.T, self._z_prev, out=self._cross_view)
-        elif c[_LAG] != 0.0:
-            c[_LAG : _LAG + 29] = 0.0
-        self._history.contribution_one(stamp if stamp is not None else frame_no / NOMINAL_RATE_HZ, z, self._tl_view)
-        tl = self._tl_view
-        # moving_seconds of this one frame, in scalars (0.5 against 3.9 us per frame; tested equal)
-        moved = tl[_MOVE_AT] > 0.0 and tl[_MOVE_AT + 13] + tl[_MOVE_AT + 18] + tl[_MOVE_AT + 23] < _MOVE_TRACE_MIN
-        c[_MOVE] = min(float(tl[1]), _MOVE_GAP_MAX) if moved else 0.0
-        self._window().push(c, stamp)
-        self._z_prev[...] = z
+        Yc = None if Y is None else Y.copy()
+        self._pending.append(_PendingFrame(R.copy(), d.copy(), ss.copy(), pairs, stamp, frame_no, Yc, self.chained))
         self.chained = True
+        if len(self._pending) >= PENDING_MAX:
+            self.flush()
+
+    def flush(self) -> None:
+        """Sum the frames :meth:`add_frame` queued, in order, as one block (runs of equal kind)."""
+        pending, self._pending = self._pending, []
+        start = 0
+        for k in range(1, len(pending) + 1):  # runs with and without markers (Y), and with and without stamps
+            if k == len(pending) or pending[k].kind != pending[start].kind:
+                self._push_frames(pending[start:k])
+                start = k
+
+    def _push_frames(self, frames: list[_PendingFrame]) -> None:
+        """:meth:`add_block` of queued frames of one kind."""
+        sets: dict[int, int] = {}
+        rows: list[PairSet] = []
+        which = np.empty(len(frames), dtype=np.intp)
+        for k, f in enumerate(frames):
+            row = sets.get(id(f.pairs))
+            if row is None:
+                row = sets[id(f.pairs)] = len(rows)
+                rows.append(f.pairs)
+            which[k] = row
+        W_sets = np.stack([ps.W_flat for ps in rows])
+        dof_sets = np.stack([ps.dof for ps in rows])
+        stamped = frames[0].stamp is not None
+        stamps = np.array([f.stamp for f in frames], dtype=np.float64) if stamped else None
+        times = stamps if stamps is not None else np.array([f.frame_no for f in frames], dtype=np.float64) / NOMINAL_RATE_HZ
+        with_markers = frames[0].Y is not None
+        self._add_block(
+            np.stack([f.R for f in frames]),
+            np.stack([f.d for f in frames]),
+            np.stack([f.ss for f in frames]),
+            W_sets,
+            dof_sets,
+            which,
+            np.array([f.chained for f in frames], dtype=bool),
+            stamps,
+            times,
+            np.stack([f.Y for f in frames]) if with_markers else None,  # type: ignore[misc]
+            np.stack([ps.wn for ps in rows]) if with_markers else None,
+        )
 
     def add_block(
         self,
@@ -244,10 +305,29 @@ class RelativePoseSums:
 
         Notes
         -----
-        The sums equal those of :meth:`add_frame` of each frame in turn to rounding; exponential
+        The frames :meth:`add_frame` queued are summed first (the order is kept). Exponential
         forgetting sums the block's weighted contributions with matrix products, never forming
         them one per frame.
         """
+        if self._pending:
+            self.flush()
+        self._add_block(R, d, ss, W_sets, dof_sets, which, paired, stamps, times, Y, wn_sets)
+
+    def _add_block(
+        self,
+        R: FloatArray,
+        d: FloatArray,
+        ss: FloatArray,
+        W_sets: FloatArray,
+        dof_sets: FloatArray,
+        which: NDArray[np.intp],
+        paired: NDArray[np.bool_],
+        stamps: FloatArray | None,
+        times: FloatArray,
+        Y: FloatArray | None,
+        wn_sets: FloatArray | None,
+    ) -> None:
+        """:meth:`add_block` of frames that come after every frame summed so far."""
         m = R.shape[0]
         window = self._window()
         x = np.empty((m, 3, 4))
@@ -334,9 +414,10 @@ class RelativePoseSums:
 
     def entered(self, status: str) -> FloatArray:
         """The window's sums vector; InputError (naming ``status``) when no frame has entered the statistics yet."""
-        if self.window is None or self.window.sums[0] <= 0.0:
+        window = self.window
+        if window is None or window.sums[0] <= 0.0:
             raise InputError(f"no frame has entered the statistics yet ({status or 'no posed frame'})")
-        return self.window.sums
+        return window.sums
 
     def lag_sums(self, status: str) -> LagSums:
         """The window's lag-pair sums (:class:`~jointfit_core.serial.LagSums`)."""
@@ -349,11 +430,13 @@ class RelativePoseSums:
     @property
     def movement_seconds(self) -> float:
         """Seconds of movement in the window (weighted, with forgetting; :func:`moving_seconds`)."""
-        return 0.0 if self.window is None else float(self.window.sums[_MOVE])
+        window = self.window
+        return 0.0 if window is None else float(window.sums[_MOVE])
 
     def noise_sums(self) -> tuple[FloatArray, FloatArray] | None:
         """The window's pose-fit residual sums of squares and dofs, (2,) each (parent, child); None before any frame."""
-        if self.window is None:
+        window = self.window
+        if window is None:
             return None
-        s = self.window.sums
+        s = window.sums
         return s[_SS : _SS + 4 : 2], s[_SS + 1 : _SS + 4 : 2]
