@@ -5,17 +5,18 @@ tested without ROS: :class:`JointRunner` takes marker frames (or segment
 poses, as virtual markers), keeps its :class:`~jointfit_core.estimator.OnlineJoint`
 solved every ``estimate_period``, fixes the hinge sign, counts what it
 drops, summarises its state for ``/diagnostics`` and saves and loads its
-calibration. Two of its parts are modules of their own:
+calibration. Four of its parts are modules of their own:
 :mod:`jointfit_ros.absurd_values` (the absurd-marker screen a frame meets
-first, the workspace, the output and unit checks) and
+first, the workspace, the output and unit checks),
+:mod:`jointfit_ros.axis_convention` (which way a hinge axis points),
+:mod:`jointfit_ros.joint_calibration` (the record a calibration is made for,
+the checks of a restored one, the per-joint file) and
 :mod:`jointfit_ros.joint_diagnostics` (the ``/diagnostics`` status it reports).
 """
 
 from __future__ import annotations
 
 import math
-import shutil
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
@@ -25,9 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from jointfit_core.atomic import remove_stale_temporaries
-from jointfit_core.axis_sign import SIGN_SD_MAX_DEG, direction_sd_deg, hinge_sign
-from jointfit_core.calibration import load_calibration, save_calibration
+from jointfit_core.axis_sign import SIGN_SD_MAX_DEG
 from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
 from jointfit_core.estimator import (
     JointOutput,
@@ -37,15 +36,16 @@ from jointfit_core.estimator import (
     virtual_markers_template,
 )
 from jointfit_core.hinge_from_sums import PoseSumsAxis
-from jointfit_core.lever import rms_radius
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
 from .absurd_values import ABSURD_RADII, MarkerScreen, output_sane, unit_problem, workspace_limit
 from .activity import InputActivity
+from .axis_convention import AxisConvention
 from .consistency_status import ConsistencyMonitor
+from .joint_calibration import JointCalibration
 from .joint_diagnostics import ERROR, OK, STALE, WARN, Status, joint_status, live_status
 from .live_geometry import LiveGeometry
-from .params import JointConfig, NodeConfig, calibration_path
+from .params import JointConfig, NodeConfig
 from .sync import StampMatcher
 
 __all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE", "output_sane", "unit_problem"]
@@ -91,31 +91,6 @@ def widened_output(out: JointOutput, lever: float) -> JointOutput:
     return replace(out, cov=cov, cov_direction=cov_direction)
 
 
-#: Fully visible frames compared with a loaded calibration's templates (:meth:`JointRunner._check_layout`).
-LAYOUT_FRAMES = 10
-
-
-def _distance_errors(y: FloatArray, template: FloatArray) -> FloatArray:
-    """|d_ij(y) - d_ij(template)| over the marker pairs i < j of one segment (input units)."""
-    i, j = np.triu_indices(template.shape[0], 1)
-    out: FloatArray = np.abs(np.linalg.norm(y[i] - y[j], axis=1) - np.linalg.norm(template[i] - template[j], axis=1))
-    return out
-
-
-def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
-    """The window and estimator settings of a calibration file that differ from the configuration, in words."""
-    wanted = {"window": None, "window_s": None, "half_life_s": None, **cfg.window_kwargs()}
-    configured = {**wanted, "template_frames": cfg.template_frames, "gate": cfg.outlier_gate}
-    if "attachment" in data:  # saved since the soft-tissue part exists
-        configured["attachment"] = [cfg.attachment, cfg.attachment]
-    notes = []
-    for key, value in configured.items():
-        saved = data.get(key)
-        if saved != value and not (saved is None and value in (None, 0.0)):
-            notes.append(f"the calibration's {key} is {saved!r}, the configuration's {value!r}: the file's is used")
-    return notes
-
-
 class JointRunner:
     """Feed one joint's estimator from the node's inputs and report on it.
 
@@ -135,6 +110,10 @@ class JointRunner:
         inputs without a partner), ``estimate_failures``.
     last_error : str
         The latest problem in words (empty when none).
+    calib : JointCalibration
+        Where its calibration came from, why one was refused, its per-joint file.
+    sign : AxisConvention
+        Which way its hinge axis points (chosen once by ``axis_toward_marker``).
     """
 
     def __init__(self, cfg: JointConfig, node: NodeConfig) -> None:
@@ -161,25 +140,14 @@ class JointRunner:
         self._noise_args = noise
         self.counters = dict.fromkeys(_COUNTERS, 0)
         self.last_error = ""
-        self.loaded_from: str = ""
-        self.load_notes: list[str] = []  # said once at start: settings of the file that differ, files cleaned
-        #: Why the calibration given at start was refused or discarded, in /diagnostics until the next save.
-        self.load_problem = ""
-        self._layout_frames = False  # a loaded calibration's templates are still to be compared with live markers
-        self._layout_seen: list[FloatArray] = []
-        self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
+        self.calib = JointCalibration(cfg)
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
         #: The latest frame's live-geometry offer left for :meth:`take_sample` (``defer_sample``): (stamp s, frame).
         self._sample: tuple[float, FloatArray] | None = None
         self._last_solve = -math.inf
-        self._sign_fixed = not cfg.axis_toward_marker
-        self.sign_text = ""  # which way the hinge axis points, in words (set when the sign is chosen)
-        self.sign_problem = ""  # why a configured sign convention cannot be honoured
-        self._toward_row = node.marker_index(cfg.axis_toward_marker) if cfg.axis_toward_marker else -1
-        self._from_row = node.marker_index(cfg.axis_from_marker) if cfg.axis_from_marker else -1
         #: The absurd-marker test of the two clusters (:meth:`_in_workspace`).
         self.screen = MarkerScreen(self.parent_rows, self.child_rows)
-        self._cluster_rows = self.screen.cluster_rows
+        self.sign = AxisConvention(cfg, node, self.screen.cluster_rows)
         self._limit_node: NodeConfig | None = None
         self._limit = math.inf
         self.estimator = self._new_estimator()
@@ -214,10 +182,40 @@ class JointRunner:
             **self.cfg.window_kwargs(),
         )
 
+    # ------------------------------------------------------------------ calibration (:mod:`.joint_calibration`)
+
     @property
     def calibration_path(self) -> Path | None:
         """The calibration file with ``~`` and environment variables expanded (None when not configured)."""
-        return calibration_path(self.cfg.calibration_file) if self.cfg.calibration_file else None
+        return self.calib.path
+
+    @property
+    def loaded_from(self) -> str:
+        """Where the restored calibration came from (empty when none is): :attr:`JointCalibration.loaded_from`."""
+        return self.calib.loaded_from
+
+    @property
+    def load_notes(self) -> list[str]:
+        """Said once at start: settings of the file that differ, files cleaned (:attr:`JointCalibration.load_notes`)."""
+        return self.calib.load_notes
+
+    @property
+    def load_problem(self) -> str:
+        """Why the calibration given at start was refused or discarded, in /diagnostics until the next save."""
+        return self.calib.load_problem
+
+    @property
+    def unloadable(self) -> bool:
+        """A calibration given to this joint was refused or discarded since the last save (keep it aside before saving)."""
+        return self.calib.unloadable
+
+    def saved_unloadable(self) -> None:
+        """The refused calibration has been kept aside (by whoever saves): :attr:`unloadable` is cleared."""
+        self.calib.saved_unloadable()
+
+    def identity(self) -> dict[str, Any]:
+        """What a calibration file records of the joint it was made for (:meth:`JointCalibration.identity`)."""
+        return self.calib.identity()
 
     def _load(self) -> None:
         """Load the configured calibration file, when it exists and is valid for this joint.
@@ -229,33 +227,17 @@ class JointRunner:
         killed saves are removed first; settings that differ from the
         configuration are listed in :attr:`load_notes`.
         """
-        path = self.calibration_path
-        if path is None:
-            return
-        removed = remove_stale_temporaries(path)
-        if removed:
-            self.load_notes.append(f"removed {len(removed)} stale temporary file(s) of killed saves beside {path}")
-        if not path.exists():
-            return
-        data: Any = None
-        problem = ""
-        if not path.is_file():
-            problem = "it is not a regular file"
-        else:
-            try:
-                data = load_calibration(path)
-            except (InputError, OSError, UnicodeDecodeError) as exc:
-                problem = str(exc)
-        self.restore(data, f"file {path}", str(path), problem)
+        read = self.calib.read()
+        if read is not None:
+            path, data, problem = read
+            self.restore(data, f"file {path}", str(path), problem)
 
     def restore(self, data: Any, label: str, source: str, problem: str = "") -> bool:
         """Make a saved calibration (a per-joint file's content) this joint's estimate, frozen; False when refused.
 
-        The checks of :meth:`_load`: the joint's record (another joint's,
-        other markers or pose topics), the format and version, finite and
-        plausible values, the joint type, the marker counts, identifiability;
-        the live markers are compared with its templates over the first
-        frames (:meth:`_check_layout`).
+        The checks of :meth:`JointCalibration.restored`; the live markers are
+        compared with its templates over the first frames
+        (:meth:`JointCalibration.layout_differs`).
 
         Parameters
         ----------
@@ -274,114 +256,19 @@ class JointRunner:
             Loaded. Refused: :attr:`last_error` says why (``calibration <label> not loaded (kept as it is): ...``),
             :attr:`unloadable` is set and the joint estimates.
         """
-        est: OnlineJoint | None = None
-        if not problem:
-            try:
-                if not isinstance(data, dict):
-                    raise InputError(f"expected a calibration mapping, got {type(data).__name__}")
-                problem = self._foreign(data)
-                if not problem:
-                    est = OnlineJoint.from_dict(data)
-            except InputError as exc:
-                problem = str(exc)
-        if est is not None and not problem:
-            problem = self._unusable(est)
-        if problem or est is None:
-            self.last_error = f"calibration {label} not loaded (kept as it is): {problem}"
-            self.load_problem = self.last_error
-            self._unloadable = True
+        est = self.calib.restored(data, label, source, problem, self._new_estimator)
+        if est is None:
+            self.last_error = self.calib.load_problem
             return False
-        self.load_notes += _settings_differences(data, self.cfg)
         self.estimator = est
-        self._layout_frames = True  # until the live markers are compared with the templates
-        self._layout_seen = []
-        self._sign_fixed = True  # the saved estimate carries its sign
-        if self.cfg.axis_toward_marker:
-            self.sign_text = f"{self._sign_words()} (as saved in {source})"
-        self.loaded_from = source
+        self.sign.restored(source)  # the saved estimate carries its sign
         return True
 
-    @property
-    def unloadable(self) -> bool:
-        """A calibration given to this joint was refused or discarded since the last save (keep it aside before saving)."""
-        return self._unloadable
-
-    def saved_unloadable(self) -> None:
-        """The refused calibration has been kept aside (by whoever saves): :attr:`unloadable` is cleared."""
-        self._unloadable = False
-        self.load_problem = ""
-
-    def _check_layout(self, parent: FloatArray, child: FloatArray) -> None:
-        """Compare a loaded calibration's templates with the first fully visible frames; refuse a changed set-up.
-
-        A file from before marker names were recorded, or markers moved on the
-        subject since, cannot be recognised from the file alone: its
-        templates' inter-marker distances must match those of the live
-        markers (median over :data:`LAYOUT_FRAMES` fully visible frames, within
-        20 % of the cluster's rms radius plus 6 noise sd: skin motion passes,
-        a swapped or moved marker does not). A mismatch discards the loaded
-        estimate (the file is kept untouched) and the joint estimates anew.
-        """
-        templates = self.estimator.templates
-        for k, y in enumerate((parent, child)):
-            tpl = templates[k]
-            if tpl is None or y.shape != tpl.shape or not np.isfinite(y).all():
-                return
-        self._layout_seen.append(
-            np.concatenate([_distance_errors(y, t) for y, t in zip((parent, child), templates, strict=True)])  # type: ignore[arg-type]
-        )
-        if len(self._layout_seen) < LAYOUT_FRAMES:
-            return
-        self._layout_frames = False
-        error = np.median(np.stack(self._layout_seen), axis=0)
-        self._layout_seen = []
-        sigma = max(self.estimator.noise_std)
-        tol = 0.2 * min(rms_radius(t) for t in templates) + 6.0 * sigma  # type: ignore[arg-type]
-        if error.max() <= tol:
-            return
-        path = self.loaded_from
+    def _estimate_anew(self) -> None:
+        """The restored calibration was discarded (:meth:`JointCalibration.layout_differs`): a new estimator."""
         self.estimator = self._new_estimator()
-        self._sign_fixed = not self.cfg.axis_toward_marker
-        self.sign_text = ""
-        self.loaded_from = ""
-        self._unloadable = True
-        self.last_error = self.load_problem = (
-            f"calibration file {path} discarded (kept as it is): the live markers' distances differ from its "
-            f"templates' by up to {error.max():.3g} (tolerance {tol:.3g}): markers reordered, renamed or moved "
-            "since it was saved; estimating anew"
-        )
-
-    def identity(self) -> dict[str, Any]:
-        """What a calibration file records of the joint it was made for (checked on load)."""
-        return {
-            "joint": self.cfg.name,
-            "parent_markers": list(self.cfg.parent_markers) + [f"chain:{j}" for j in self.cfg.parent_chain],
-            "child_markers": list(self.cfg.child_markers) + [f"chain:{j}" for j in self.cfg.child_chain],
-            "parent_pose_topic": self.cfg.parent_pose_topic,
-            "child_pose_topic": self.cfg.child_pose_topic,
-        }
-
-    def _foreign(self, data: dict[str, Any]) -> str:
-        """Why a calibration's recorded identity is not this joint's (empty when it is, or records none)."""
-        mine = self.identity()
-        for key, value in mine.items():
-            if key in data and data[key] != value:
-                return f"it was made for {key} {data[key]!r}, this joint has {value!r}"
-        return ""
-
-    def _unusable(self, est: OnlineJoint) -> str:
-        """Why a loaded estimator cannot serve this joint (empty when it can)."""
-        if est.kind != self.cfg.type:
-            return f"it holds a {est.kind} joint, this joint is a {self.cfg.type}"
-        wanted = self._new_estimator().n_markers
-        if est.n_markers != wanted:
-            return f"it was made for {est.n_markers} markers (parent, child), this joint has {wanted}"
-        sol = est.solution
-        if sol is not None and not sol.identifiable and not self.cfg.freeze_unidentified:
-            return (
-                f"its estimate is not identifiable ({sol.reason}); set {self.cfg.name}.freeze_unidentified to use it"
-            )
-        return ""
+        self.sign.unchoose()
+        self.last_error = self.calib.load_problem
 
     # ------------------------------------------------------------------ inputs
 
@@ -441,7 +328,7 @@ class JointRunner:
         -----
         Per frame only where the sequential path needs the per-frame
         output or check: a loaded calibration's templates are compared with
-        the first fully visible frames (:meth:`_check_layout`); the hinge
+        the first fully visible frames (:meth:`JointCalibration.layout_differs`); the hinge
         sign (``axis_toward_marker``) is fixed on the first output after
         the first estimate, so while it is not fixed and
         an estimate exists, frames go through :meth:`process` one by one
@@ -462,11 +349,11 @@ class JointRunner:
             return
         parent, child = frames[:, self.parent_rows], frames[:, self.child_rows]
         k = 0
-        while k < n and self._layout_frames:  # a loaded calibration: compared with the live markers first
+        while k < n and self.calib.checking_layout:  # a loaded calibration: compared with the live markers first
             self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
             k += 1
         est = self.estimator  # (a new one when the loaded calibration was discarded)
-        while k < n and not self._sign_fixed and est.solution is not None and est.solution.identifiable:
+        while k < n and not self.sign.fixed and est.solution is not None and est.solution.identifiable:
             self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
             k += 1
         if k == n:
@@ -547,8 +434,8 @@ class JointRunner:
         :attr:`last_error`.
         """
         stamp = stamp_ns * 1e-9
-        if self._layout_frames:
-            self._check_layout(parent, child)
+        if self.calib.checking_layout and self.calib.layout_differs(parent, child, self.estimator):
+            self._estimate_anew()
         try:
             out = self.estimator.update(parent, child, stamp)
         except InputError as exc:
@@ -562,9 +449,11 @@ class JointRunner:
         if not self._publishable():
             self.counters["withheld_unidentified"] += 1
             return None
-        if not self._sign_fixed and frame is not None:
-            out = self._fix_sign(out, frame)
-            if not self._sign_fixed:  # a configured sign convention not honoured yet: no axis pointing either way
+        if not self.sign.fixed and frame is not None:
+            out, resolve = self.sign.choose(out, frame, self.estimator)
+            if resolve:  # the sign is chosen: the window is solved with it now
+                self.estimate(force=True)
+            if not self.sign.fixed:  # a configured sign convention not honoured yet: no axis pointing either way
                 self.counters["withheld_unsigned"] += 1
                 return None
         sol = self.estimator.solution
@@ -576,11 +465,6 @@ class JointRunner:
             return None
         self.counters["outputs"] += 1
         return out
-
-    @property
-    def sign_pending(self) -> bool:
-        """A hinge sign convention is configured and not chosen yet (its axis outputs are withheld until it is)."""
-        return not self._sign_fixed
 
     def _publishable(self) -> bool:
         """Whether per-frame outputs go out: the estimate is identifiable, or ``publish_unidentified``."""
@@ -599,65 +483,21 @@ class JointRunner:
         topics = (self.cfg.parent_pose_topic, self.cfg.child_pose_topic)
         return {side: round(r, 2) for side, r, topic in zip(("parent", "child"), ratios, topics, strict=True) if not topic}
 
+    # ------------------------------------------------------------------ hinge sign (:mod:`.axis_convention`)
+
+    @property
+    def sign_pending(self) -> bool:
+        """A hinge sign convention is configured and not chosen yet (its axis outputs are withheld until it is)."""
+        return self.sign.pending
+
+    @property
+    def sign_problem(self) -> str:
+        """Why a configured sign convention cannot be honoured (:attr:`AxisConvention.problem`)."""
+        return self.sign.problem
+
     def axis_words(self) -> str:
         """Which way the hinge axis points, in words (or that the sign is not chosen yet)."""
-        if self.sign_text:
-            return self.sign_text
-        if self.cfg.axis_toward_marker:
-            return (
-                f"not chosen yet ({self._sign_words()} once identifiable, statistical direction sd < "
-                f"{SIGN_SD_MAX_DEG:g} deg; no axis output until then)"
-            )
-        return "default: largest parent-frame component positive"
-
-    def _sign_words(self) -> str:
-        if self.cfg.axis_from_marker:
-            return f"from {self.cfg.axis_from_marker} toward {self.cfg.axis_toward_marker}"
-        return f"toward {self.cfg.axis_toward_marker} (beyond the clusters along the axis)"
-
-    def _fix_sign(self, out: JointOutput, frame: FloatArray) -> JointOutput:
-        """Point the hinge axis by the marker convention once, from an identified estimate; then keep that sign.
-
-        Until the estimate is identifiable with a statistical direction sd below
-        :data:`~jointfit_core.axis_sign.SIGN_SD_MAX_DEG`, nothing is chosen
-        (an unconverged direction can be anything); a convention that
-        cannot be honoured (:func:`~jointfit_core.axis_sign.hinge_sign`) is
-        reported in :attr:`sign_problem` and the default sign stays. The
-        statistical part (skin markers: without the soft-tissue prior) is what
-        more movement reduces; the artefact part is a bias of a few degrees
-        that cannot flip a sign read from markers whose line runs at least
-        :data:`~jointfit_core.axis_sign.MIN_ALONG_RATIO` along the axis (the
-        real knee fixture: total 5.2 deg, statistical 0.9 deg).
-        """
-        sol = self.estimator.solution
-        if not isinstance(sol, PoseSumsAxis) or out.direction is None or out.cov_direction is None:
-            return out
-        stat = self.estimator.statistical_solution
-        cov = stat.cov_direction_parent if isinstance(stat, PoseSumsAxis) else sol.cov_direction_parent
-        if not sol.identifiable or not direction_sd_deg(cov) < SIGN_SD_MAX_DEG:
-            return out
-        names = (self.cfg.axis_toward_marker, self.cfg.axis_from_marker)
-        choice = hinge_sign(
-            out.position,
-            out.direction,
-            frame[self._toward_row],
-            frame[self._from_row] if self._from_row >= 0 else None,
-            None if self._from_row >= 0 else frame[self._cluster_rows],
-            names,
-        )
-        if not choice.final:
-            return out
-        self._sign_fixed = True
-        if choice.sign == 0.0:
-            self.sign_problem = choice.reason
-            self.sign_text = "default (largest parent-frame component positive): " + choice.reason
-            return out
-        self.sign_text = self._sign_words()
-        self.estimator.set_reference_direction(choice.sign * sol.direction_parent)
-        self.estimate(force=True)
-        if choice.sign < 0.0:
-            out = replace(out, direction=-out.direction)
-        return out
+        return self.sign.words()
 
     # ------------------------------------------------------------------ estimates
 
@@ -721,15 +561,13 @@ class JointRunner:
         """Forget the window, templates and estimate (the calibration file is untouched)."""
         self.estimator = self._new_estimator()
         self._sample = None
-        self._sign_fixed = not self.cfg.axis_toward_marker
-        self.sign_text = self.sign_problem = ""
-        self._layout_frames, self._layout_seen = False, []
+        self.sign.reset()
+        self.calib.forget()
         if self.matcher is not None:
             self.matcher.clear()
         for key in self.counters:
             self.counters[key] = 0
         self.last_error = ""
-        self.loaded_from = ""
         self.done = False
         self.auto_note = ""
         self.consistency = ConsistencyMonitor()
@@ -759,9 +597,9 @@ class JointRunner:
                 f"the estimate is not identifiable ({sol.reason}); set {self.cfg.name}.freeze_unidentified to "
                 f"{action} it anyway"
             )
-        if not self._sign_fixed:
+        if not self.sign.fixed:
             raise JointfitError(
-                f"the hinge sign ({self._sign_words()}) is not chosen yet: it waits for an identifiable estimate "
+                f"the hinge sign ({self.sign.convention()}) is not chosen yet: it waits for an identifiable estimate "
                 f"with a statistical direction sd below {SIGN_SD_MAX_DEG:g} deg and a frame with the marker(s) visible"
             )
 
@@ -780,17 +618,10 @@ class JointRunner:
         OSError
             The file cannot be written (the previous one is kept).
         """
-        path = self.calibration_path
+        path = self.calib.path
         if path is None:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
-        data = self.calibration()
-        kept = ""
-        if self._unloadable and path.exists():
-            aside = path.with_name(f"{path.name}.unloadable-{time.strftime('%Y%m%d-%H%M%S')}")
-            shutil.copy2(path, aside)
-            kept = f" (the unloadable previous file is kept as {aside})"
-        self.saved_unloadable()
-        return str(save_calibration(path, data)) + kept
+        return self.calib.write(path, self.calibration())
 
     def calibration(self) -> dict[str, Any]:
         """The joint's calibration as :meth:`save` writes it: the estimator's (settings, templates, estimate) and its record.
@@ -802,7 +633,7 @@ class JointRunner:
         """
         self._check_usable("save")
         data = self.estimator.to_dict()
-        data.update(self.identity())
+        data.update(self.calib.identity())
         return data
 
     # ------------------------------------------------------------------ diagnostics
