@@ -149,7 +149,7 @@ class NodeCalibrationFile:
         """
         chosen = [r for r in self.runners if only is None or r.cfg.name in only]
         for runner in self.runners:  # a loaded calibration since discarded (layout check) is not written again
-            if runner.unloadable:
+            if runner.calib.unloadable:
                 self._entries.pop(runner.cfg.name, None)
                 self._aside = True
         fresh: dict[str, dict[str, Any]] = {}
@@ -173,7 +173,7 @@ class NodeCalibrationFile:
         path = save_node_calibration(self.path, doc)
         self._aside = False
         for runner in self.runners:
-            runner.saved_unloadable()
+            runner.calib.saved_unloadable()
         self.unsaved = [r.cfg.name for r in chosen if r.cfg.name not in fresh]
         self._entries.update(fresh)
         for name in fresh:
