@@ -43,24 +43,13 @@ class JointRunner(JointFeed):
 
     Parameters
     ----------
-    cfg : JointConfig
-        This joint's parameters.
-    node : NodeConfig
-        The node's parameters (marker names, estimate period, sync tolerance).
+    cfg, node : JointConfig, NodeConfig
+        The joint's and the node's parameters, as for :class:`~jointfit_ros.joint_feed.JointFeed`.
 
     Attributes
     ----------
-    estimator : OnlineJoint
-    counters : dict of str to int
-        ``frames`` (inputs given to the estimator), ``outputs``,
-        ``malformed`` (inputs rejected with an error), ``unmatched`` (pose
-        inputs without a partner), ``estimate_failures``.
-    last_error : str
-        The latest problem in words (empty when none).
-    calib : JointCalibration
-        Where its calibration came from, why one was refused, its per-joint file.
-    sign : AxisConvention
-        Which way its hinge axis points (chosen once by ``axis_toward_marker``).
+    estimator, counters, last_error, calib, sign
+        The feed's (:class:`~jointfit_ros.joint_feed.JointFeed`).
     saver : callable or None
         What :meth:`auto_freeze` calls to save.
     consistency : ConsistencyMonitor
