@@ -183,6 +183,11 @@ class JointCalibration:
             Why it could not even be read (refused with this reason; empty when it was read).
         new_estimator : callable
             Makes the joint's estimator as configured (the marker counts it must have).
+
+        Returns
+        -------
+        OnlineJoint or None
+            The restored joint, frozen with the saved estimate; None when refused.
         """
         est: OnlineJoint | None = None
         if not problem:
@@ -246,6 +251,11 @@ class JointCalibration:
             One frame's markers of each segment (input units; NaN: missing).
         est : OnlineJoint
             The restored estimator (its templates and noise).
+
+        Returns
+        -------
+        bool
+            The layout differs: the restored calibration is discarded (False while frames are still gathered).
         """
         templates = est.templates
         for k, y in enumerate((parent, child)):
