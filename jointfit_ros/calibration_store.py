@@ -13,8 +13,6 @@ before it is first replaced, as a per-joint file is.
 
 from __future__ import annotations
 
-import shutil
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -28,6 +26,7 @@ from jointfit_core.node_calibration import (
     segment_key,
 )
 
+from .joint_calibration import keep_aside
 from .params import calibration_path
 from .runner import JointRunner
 
@@ -150,7 +149,7 @@ class NodeCalibrationFile:
         """
         chosen = [r for r in self.runners if only is None or r.cfg.name in only]
         for runner in self.runners:  # a loaded calibration since discarded (layout check) is not written again
-            if runner.unloadable:
+            if runner.calib.unloadable:
                 self._entries.pop(runner.cfg.name, None)
                 self._aside = True
         fresh: dict[str, dict[str, Any]] = {}
@@ -170,13 +169,11 @@ class NodeCalibrationFile:
         doc = node_calibration(calibrations, node=self.node, units=self.units, segment_labels=labels)
         kept = ""
         if self._aside and self.path.exists():
-            aside = self.path.with_name(f"{self.path.name}.unloadable-{time.strftime('%Y%m%d-%H%M%S')}")
-            shutil.copy2(self.path, aside)
-            kept = f" (the previous file, not loaded entirely, is kept as {aside})"
+            kept = f" (the previous file, not loaded entirely, is kept as {keep_aside(self.path)})"
         path = save_node_calibration(self.path, doc)
         self._aside = False
         for runner in self.runners:
-            runner.saved_unloadable()
+            runner.calib.saved_unloadable()
         self.unsaved = [r.cfg.name for r in chosen if r.cfg.name not in fresh]
         self._entries.update(fresh)
         for name in fresh:

@@ -162,8 +162,8 @@ def _input_values(runner: JointRunner) -> dict[str, Any]:
         values[f"{side} swapped labels put right (frames)"] = n
     if runner.loaded_from:
         values["calibration loaded from"] = runner.loaded_from
-    if runner.load_problem:
-        values["calibration not loaded"] = runner.load_problem
+    if runner.calib.load_problem:
+        values["calibration not loaded"] = runner.calib.load_problem
     return values
 
 
@@ -223,8 +223,8 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
         return f"not identifiable ({outputs}): {sol.reason}"
     if units:
         return units
-    if runner.sign_problem:
-        return f"hinge sign convention not honoured: {runner.sign_problem}"
+    if runner.sign.problem:
+        return f"hinge sign convention not honoured: {runner.sign.problem}"
     return runner.consistency.warning(est) if sol.identifiable else ""
 
 

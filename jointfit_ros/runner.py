@@ -5,219 +5,86 @@ tested without ROS: :class:`JointRunner` takes marker frames (or segment
 poses, as virtual markers), keeps its :class:`~jointfit_core.estimator.OnlineJoint`
 solved every ``estimate_period``, fixes the hinge sign, counts what it
 drops, summarises its state for ``/diagnostics`` and saves and loads its
-calibration. Two of its parts are modules of their own:
-:mod:`jointfit_ros.absurd_values` (the absurd-marker screen a frame meets
-first, the workspace, the output and unit checks) and
+calibration. Its parts are modules of their own:
+:mod:`jointfit_ros.joint_feed` (:class:`~jointfit_ros.joint_feed.JointFeed`,
+which it extends: the per-frame path from the inputs to the outputs, and the
+solves), :mod:`jointfit_ros.absurd_values` (the absurd-marker screen a frame
+meets first, the workspace, the output and unit checks),
+:mod:`jointfit_ros.axis_convention` (which way a hinge axis points),
+:mod:`jointfit_ros.joint_calibration` (the record a calibration is made for,
+the checks of a restored one, the per-joint file) and
 :mod:`jointfit_ros.joint_diagnostics` (the ``/diagnostics`` status it reports).
+This module holds what the node does with a joint besides feeding it:
+restoring and saving its calibration, reset, freeze and auto_freeze, and
+its status.
 """
 
 from __future__ import annotations
 
-import math
-import shutil
-import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
+from jointfit_core.axis_sign import SIGN_SD_MAX_DEG
+from jointfit_core.errors import JointfitError
 
-from jointfit_core.atomic import remove_stale_temporaries
-from jointfit_core.axis_sign import SIGN_SD_MAX_DEG, direction_sd_deg, hinge_sign
-from jointfit_core.calibration import load_calibration, save_calibration
-from jointfit_core.errors import InputError, JointfitError, NotIdentifiableError
-from jointfit_core.estimator import (
-    JointOutput,
-    OnlineJoint,
-    SolveRequest,
-    SolveResult,
-    virtual_markers_template,
-)
-from jointfit_core.hinge_from_sums import PoseSumsAxis
-from jointfit_core.lever import rms_radius
-from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
-
-from .absurd_values import ABSURD_RADII, MarkerScreen, output_sane, unit_problem, workspace_limit
+from .absurd_values import ABSURD_RADII, output_sane, unit_problem
 from .activity import InputActivity
 from .consistency_status import ConsistencyMonitor
 from .joint_diagnostics import ERROR, OK, STALE, WARN, Status, joint_status, live_status
-from .live_geometry import LiveGeometry
-from .params import JointConfig, NodeConfig, calibration_path
-from .sync import StampMatcher
+from .joint_feed import JointFeed
+from .params import JointConfig, NodeConfig
 
-__all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE", "output_sane", "unit_problem"]
-
-FloatArray = NDArray[np.float64]
-
-#: Input stamps kept to measure the input rate.
-_RATE_SAMPLES = 200
-
-#: The runner's counters (see :class:`JointRunner`).
-_COUNTERS = (
-    "frames", "outputs", "malformed", "unmatched", "estimate_failures", "absurd_markers", "absurd_outputs",
-    "withheld_unidentified", "withheld_unsigned",
-)
+__all__ = ["JointRunner", "Status", "OK", "WARN", "ERROR", "STALE", "ABSURD_RADII", "output_sane", "unit_problem"]
 
 
-def _lever(sol: PoseSumsCentre | PoseSumsAxis) -> float:
-    """The estimate's distance from the template centroids (input units)."""
-    if isinstance(sol, PoseSumsCentre):
-        return float(max(np.linalg.norm(sol.centre_parent), np.linalg.norm(sol.centre_child)))
-    return float(max(np.linalg.norm(sol.point_parent), np.linalg.norm(sol.point_child)))
-
-
-def widened_output(out: JointOutput, lever: float) -> JointOutput:
-    """A not-identifiable estimate's output with a covariance that covers what the motion left undetermined.
-
-    The position covariance gets at least the identifiability limit
-    (:data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm) in every
-    direction and a whole lever arm along its least-determined direction
-    (a joint moved about one axis is anywhere along it, within the segment);
-    a hinge direction gets at least
-    :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG` about both perpendicular axes.
-    The estimate itself is unchanged.
-    """
-    cov = out.cov
-    finite = bool(np.isfinite(cov).all())
-    v = np.linalg.eigh(cov)[1][:, -1] if finite else np.zeros(3)
-    cov = cov + (SD_REL_MAX * lever) ** 2 * np.eye(3) + lever**2 * np.outer(v, v)
-    cov_direction = out.cov_direction
-    if out.direction is not None and cov_direction is not None:
-        d = out.direction
-        cov_direction = cov_direction + np.radians(AXIS_SD_MAX_DEG) ** 2 * (np.eye(3) - np.outer(d, d))
-    return replace(out, cov=cov, cov_direction=cov_direction)
-
-
-#: Fully visible frames compared with a loaded calibration's templates (:meth:`JointRunner._check_layout`).
-LAYOUT_FRAMES = 10
-
-
-def _distance_errors(y: FloatArray, template: FloatArray) -> FloatArray:
-    """|d_ij(y) - d_ij(template)| over the marker pairs i < j of one segment (input units)."""
-    i, j = np.triu_indices(template.shape[0], 1)
-    out: FloatArray = np.abs(np.linalg.norm(y[i] - y[j], axis=1) - np.linalg.norm(template[i] - template[j], axis=1))
-    return out
-
-
-def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
-    """The window and estimator settings of a calibration file that differ from the configuration, in words."""
-    wanted = {"window": None, "window_s": None, "half_life_s": None, **cfg.window_kwargs()}
-    configured = {**wanted, "template_frames": cfg.template_frames, "gate": cfg.outlier_gate}
-    if "attachment" in data:  # saved since the soft-tissue part exists
-        configured["attachment"] = [cfg.attachment, cfg.attachment]
-    notes = []
-    for key, value in configured.items():
-        saved = data.get(key)
-        if saved != value and not (saved is None and value in (None, 0.0)):
-            notes.append(f"the calibration's {key} is {saved!r}, the configuration's {value!r}: the file's is used")
-    return notes
-
-
-class JointRunner:
-    """Feed one joint's estimator from the node's inputs and report on it.
+class JointRunner(JointFeed):
+    """One joint as the node runs it: fed from the inputs (:class:`~jointfit_ros.joint_feed.JointFeed`), served and reported.
 
     Parameters
     ----------
-    cfg : JointConfig
-        This joint's parameters.
-    node : NodeConfig
-        The node's parameters (marker names, estimate period, sync tolerance).
+    cfg, node : JointConfig, NodeConfig
+        The joint's and the node's parameters, as for :class:`~jointfit_ros.joint_feed.JointFeed`.
 
     Attributes
     ----------
-    estimator : OnlineJoint
-    counters : dict of str to int
-        ``frames`` (inputs given to the estimator), ``outputs``,
-        ``malformed`` (inputs rejected with an error), ``unmatched`` (pose
-        inputs without a partner), ``estimate_failures``.
-    last_error : str
-        The latest problem in words (empty when none).
+    estimator, counters, last_error, calib, sign
+        The feed's (:class:`~jointfit_ros.joint_feed.JointFeed`).
+    saver : callable or None
+        What :meth:`auto_freeze` calls to save.
+    consistency : ConsistencyMonitor
+        The consistency check across movement blocks of the window.
     """
 
     def __init__(self, cfg: JointConfig, node: NodeConfig) -> None:
-        self.cfg = cfg
-        self.node = node
-        self.parent_rows = np.array([node.marker_index(m) for m in cfg.parent_markers], dtype=np.intp)
-        self.child_rows = np.array([node.marker_index(m) for m in cfg.child_markers], dtype=np.intp)
-        self.uses_marker_topic = bool(cfg.parent_markers or cfg.child_markers)
-        self.chained = bool(cfg.parent_chain or cfg.child_chain)
-        #: Both segments are marker clusters of the marker topic (no pose topic, no chained joint): the
-        #: estimator poses them from the node's frames (live geometry, ``~/segments``).
-        self.poses_both_segments = bool(len(self.parent_rows) and len(self.child_rows)) and not self.chained
-        self.matcher: StampMatcher | None = None
-        self._virtual: FloatArray | None = None
-        templates: tuple[FloatArray | None, FloatArray | None] = (None, None)
-        noise: tuple[float | None, float | None] = (None, None)
-        if cfg.parent_pose_topic or cfg.child_pose_topic:
-            self.matcher = StampMatcher(tolerance_ns=round(node.sync_tolerance * 1e9))
-            virtual, sigma = virtual_markers_template(cfg.pose_translation_sd, math.radians(cfg.pose_rotation_sd_deg))
-            self._virtual = virtual
-            templates = (virtual if cfg.parent_pose_topic else None, virtual if cfg.child_pose_topic else None)
-            noise = (sigma if cfg.parent_pose_topic else None, sigma if cfg.child_pose_topic else None)
-        self._template_args = templates
-        self._noise_args = noise
-        self.counters = dict.fromkeys(_COUNTERS, 0)
-        self.last_error = ""
-        self.loaded_from: str = ""
-        self.load_notes: list[str] = []  # said once at start: settings of the file that differ, files cleaned
-        #: Why the calibration given at start was refused or discarded, in /diagnostics until the next save.
-        self.load_problem = ""
-        self._layout_frames = False  # a loaded calibration's templates are still to be compared with live markers
-        self._layout_seen: list[FloatArray] = []
-        self._unloadable = False  # the configured file exists but could not be loaded: keep it on save
-        self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
-        #: The latest frame's live-geometry offer left for :meth:`take_sample` (``defer_sample``): (stamp s, frame).
-        self._sample: tuple[float, FloatArray] | None = None
-        self._last_solve = -math.inf
-        self._sign_fixed = not cfg.axis_toward_marker
-        self.sign_text = ""  # which way the hinge axis points, in words (set when the sign is chosen)
-        self.sign_problem = ""  # why a configured sign convention cannot be honoured
-        self._toward_row = node.marker_index(cfg.axis_toward_marker) if cfg.axis_toward_marker else -1
-        self._from_row = node.marker_index(cfg.axis_from_marker) if cfg.axis_from_marker else -1
-        #: The absurd-marker test of the two clusters (:meth:`_in_workspace`).
-        self.screen = MarkerScreen(self.parent_rows, self.child_rows)
-        self._cluster_rows = self.screen.cluster_rows
-        self._limit_node: NodeConfig | None = None
-        self._limit = math.inf
-        self.estimator = self._new_estimator()
+        super().__init__(cfg, node)
         #: What auto_freeze calls to save (returns the path written, in words): :meth:`save` with a
         #: calibration_file, else None; the node's calibration file sets its own.
         self.saver: Callable[[], str] | None = self.save if cfg.calibration_file else None
         #: The consistency check across movement blocks of the window (run at diagnostics time).
         self.consistency = ConsistencyMonitor()
-        #: Sampled recent frames for the anatomical results and range of motion in ``/diagnostics``
-        #: (marker joints of the marker topic, not chained; else None).
-        self.live_geometry: LiveGeometry | None = None
-        if self.poses_both_segments:
-            rows = {m: node.marker_index(m) for _, m in cfg.anatomical}
-            self.live_geometry = LiveGeometry(cfg, rows, self.parent_rows, self.child_rows)
         self._load()
 
-    # ------------------------------------------------------------------ set-up
-
-    def _new_estimator(self) -> OnlineJoint:
-        return OnlineJoint(
-            self.cfg.type,
-            template_frames=self.cfg.template_frames,
-            gate=self.cfg.outlier_gate,
-            attachment=self.cfg.attachment,
-            templates=self._template_args,
-            noise_std=self._noise_args,
-            # 4 virtual markers for poses; chain joints add one point each
-            n_markers=(
-                (len(self.parent_rows) + len(self.cfg.parent_chain)) or 4,
-                (len(self.child_rows) + len(self.cfg.child_chain)) or 4,
-            ),
-            **self.cfg.window_kwargs(),
-        )
+    # ------------------------------------------------------------------ calibration (:mod:`.joint_calibration`)
 
     @property
     def calibration_path(self) -> Path | None:
         """The calibration file with ``~`` and environment variables expanded (None when not configured)."""
-        return calibration_path(self.cfg.calibration_file) if self.cfg.calibration_file else None
+        return self.calib.path
+
+    @property
+    def loaded_from(self) -> str:
+        """Where the restored calibration came from (empty when none is): :attr:`JointCalibration.loaded_from`."""
+        return self.calib.loaded_from
+
+    @property
+    def load_notes(self) -> list[str]:
+        """Said once at start: settings of the file that differ, files cleaned (:attr:`JointCalibration.load_notes`)."""
+        return self.calib.load_notes
+
+    def identity(self) -> dict[str, Any]:
+        """What a calibration file records of the joint it was made for (:meth:`JointCalibration.identity`)."""
+        return self.calib.identity()
 
     def _load(self) -> None:
         """Load the configured calibration file, when it exists and is valid for this joint.
@@ -229,33 +96,17 @@ class JointRunner:
         killed saves are removed first; settings that differ from the
         configuration are listed in :attr:`load_notes`.
         """
-        path = self.calibration_path
-        if path is None:
-            return
-        removed = remove_stale_temporaries(path)
-        if removed:
-            self.load_notes.append(f"removed {len(removed)} stale temporary file(s) of killed saves beside {path}")
-        if not path.exists():
-            return
-        data: Any = None
-        problem = ""
-        if not path.is_file():
-            problem = "it is not a regular file"
-        else:
-            try:
-                data = load_calibration(path)
-            except (InputError, OSError, UnicodeDecodeError) as exc:
-                problem = str(exc)
-        self.restore(data, f"file {path}", str(path), problem)
+        read = self.calib.read()
+        if read is not None:
+            path, data, problem = read
+            self.restore(data, f"file {path}", str(path), problem)
 
     def restore(self, data: Any, label: str, source: str, problem: str = "") -> bool:
         """Make a saved calibration (a per-joint file's content) this joint's estimate, frozen; False when refused.
 
-        The checks of :meth:`_load`: the joint's record (another joint's,
-        other markers or pose topics), the format and version, finite and
-        plausible values, the joint type, the marker counts, identifiability;
-        the live markers are compared with its templates over the first
-        frames (:meth:`_check_layout`).
+        The checks of :meth:`JointCalibration.restored`; the live markers are
+        compared with its templates over the first frames
+        (:meth:`JointCalibration.layout_differs`).
 
         Parameters
         ----------
@@ -272,464 +123,32 @@ class JointRunner:
         -------
         bool
             Loaded. Refused: :attr:`last_error` says why (``calibration <label> not loaded (kept as it is): ...``),
-            :attr:`unloadable` is set and the joint estimates.
+            :attr:`JointCalibration.unloadable` is set and the joint estimates.
         """
-        est: OnlineJoint | None = None
-        if not problem:
-            try:
-                if not isinstance(data, dict):
-                    raise InputError(f"expected a calibration mapping, got {type(data).__name__}")
-                problem = self._foreign(data)
-                if not problem:
-                    est = OnlineJoint.from_dict(data)
-            except InputError as exc:
-                problem = str(exc)
-        if est is not None and not problem:
-            problem = self._unusable(est)
-        if problem or est is None:
-            self.last_error = f"calibration {label} not loaded (kept as it is): {problem}"
-            self.load_problem = self.last_error
-            self._unloadable = True
+        est = self.calib.restored(data, label, source, problem, self._new_estimator)
+        if est is None:
+            self.last_error = self.calib.load_problem
             return False
-        self.load_notes += _settings_differences(data, self.cfg)
         self.estimator = est
-        self._layout_frames = True  # until the live markers are compared with the templates
-        self._layout_seen = []
-        self._sign_fixed = True  # the saved estimate carries its sign
-        if self.cfg.axis_toward_marker:
-            self.sign_text = f"{self._sign_words()} (as saved in {source})"
-        self.loaded_from = source
+        self.sign.restored(source)  # the saved estimate carries its sign
         return True
 
-    @property
-    def unloadable(self) -> bool:
-        """A calibration given to this joint was refused or discarded since the last save (keep it aside before saving)."""
-        return self._unloadable
-
-    def saved_unloadable(self) -> None:
-        """The refused calibration has been kept aside (by whoever saves): :attr:`unloadable` is cleared."""
-        self._unloadable = False
-        self.load_problem = ""
-
-    def _check_layout(self, parent: FloatArray, child: FloatArray) -> None:
-        """Compare a loaded calibration's templates with the first fully visible frames; refuse a changed set-up.
-
-        A file from before marker names were recorded, or markers moved on the
-        subject since, cannot be recognised from the file alone: its
-        templates' inter-marker distances must match those of the live
-        markers (median over :data:`LAYOUT_FRAMES` fully visible frames, within
-        20 % of the cluster's rms radius plus 6 noise sd: skin motion passes,
-        a swapped or moved marker does not). A mismatch discards the loaded
-        estimate (the file is kept untouched) and the joint estimates anew.
-        """
-        templates = self.estimator.templates
-        for k, y in enumerate((parent, child)):
-            tpl = templates[k]
-            if tpl is None or y.shape != tpl.shape or not np.isfinite(y).all():
-                return
-        self._layout_seen.append(
-            np.concatenate([_distance_errors(y, t) for y, t in zip((parent, child), templates, strict=True)])  # type: ignore[arg-type]
-        )
-        if len(self._layout_seen) < LAYOUT_FRAMES:
-            return
-        self._layout_frames = False
-        error = np.median(np.stack(self._layout_seen), axis=0)
-        self._layout_seen = []
-        sigma = max(self.estimator.noise_std)
-        tol = 0.2 * min(rms_radius(t) for t in templates) + 6.0 * sigma  # type: ignore[arg-type]
-        if error.max() <= tol:
-            return
-        path = self.loaded_from
-        self.estimator = self._new_estimator()
-        self._sign_fixed = not self.cfg.axis_toward_marker
-        self.sign_text = ""
-        self.loaded_from = ""
-        self._unloadable = True
-        self.last_error = self.load_problem = (
-            f"calibration file {path} discarded (kept as it is): the live markers' distances differ from its "
-            f"templates' by up to {error.max():.3g} (tolerance {tol:.3g}): markers reordered, renamed or moved "
-            "since it was saved; estimating anew"
-        )
-
-    def identity(self) -> dict[str, Any]:
-        """What a calibration file records of the joint it was made for (checked on load)."""
-        return {
-            "joint": self.cfg.name,
-            "parent_markers": list(self.cfg.parent_markers) + [f"chain:{j}" for j in self.cfg.parent_chain],
-            "child_markers": list(self.cfg.child_markers) + [f"chain:{j}" for j in self.cfg.child_chain],
-            "parent_pose_topic": self.cfg.parent_pose_topic,
-            "child_pose_topic": self.cfg.child_pose_topic,
-        }
-
-    def _foreign(self, data: dict[str, Any]) -> str:
-        """Why a calibration's recorded identity is not this joint's (empty when it is, or records none)."""
-        mine = self.identity()
-        for key, value in mine.items():
-            if key in data and data[key] != value:
-                return f"it was made for {key} {data[key]!r}, this joint has {value!r}"
-        return ""
-
-    def _unusable(self, est: OnlineJoint) -> str:
-        """Why a loaded estimator cannot serve this joint (empty when it can)."""
-        if est.kind != self.cfg.type:
-            return f"it holds a {est.kind} joint, this joint is a {self.cfg.type}"
-        wanted = self._new_estimator().n_markers
-        if est.n_markers != wanted:
-            return f"it was made for {est.n_markers} markers (parent, child), this joint has {wanted}"
-        sol = est.solution
-        if sol is not None and not sol.identifiable and not self.cfg.freeze_unidentified:
-            return (
-                f"its estimate is not identifiable ({sol.reason}); set {self.cfg.name}.freeze_unidentified to use it"
-            )
-        return ""
-
-    # ------------------------------------------------------------------ inputs
-
-    def markers_frame(
-        self,
-        stamp_ns: int,
-        frame: FloatArray,
-        chain: dict[str, FloatArray] | None = None,
-        *,
-        defer_sample: bool = False,
-    ) -> JointOutput | None:
-        """A frame of all configured markers (P, 3) from the marker topic.
-
-        ``chain`` maps earlier joints' names to this frame's world output
-        position (a virtual marker for ``parent_chain`` / ``child_chain``;
-        missing when that joint has no output in this frame).
-        ``defer_sample``: the frame's live-geometry sample (bookkeeping that
-        does not change the output) is left for :meth:`take_sample`, so that
-        the caller publishes the output first.
-        """
-        self._sample = None  # (a sample not taken before the next frame is dropped: its poses are gone)
-        frame = self._in_workspace(frame)
-        if self.chained:
-            parent = self._with_chain(frame[self.parent_rows], self.cfg.parent_chain, chain or {})
-            child = self._with_chain(frame[self.child_rows], self.cfg.child_chain, chain or {})
-            return self.process(stamp_ns, parent, child, frame)
-        if self.matcher is None:
-            out = self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
-            if self.live_geometry is not None:
-                self._sample = (stamp_ns * 1e-9, frame)
-                if not defer_sample:
-                    self.take_sample()
-            return out
-        if self.cfg.parent_markers:
-            return self._paired(0, stamp_ns, frame[self.parent_rows], frame)
-        return self._paired(1, stamp_ns, frame[self.child_rows], frame)
-
-    def take_sample(self) -> None:
-        """Offer the latest :meth:`markers_frame` frame to the live geometry, when it was deferred (else nothing).
-
-        Uses the estimator's poses of that frame, so it must come before the next frame.
-        """
-        pending, self._sample = self._sample, None
-        if pending is not None and self.live_geometry is not None:
-            est = self.estimator
-            self.live_geometry.offer_one(pending[0], pending[1], est.templates, est.frame_poses)
-
-    def markers_block(self, stamps_ns: NDArray[np.int64], frames: FloatArray) -> None:
-        """Frames of all configured markers (K, P, 3) from the marker topic, oldest first, without outputs.
-
-        The estimator's and the runner's state (counters, input-rate stamps,
-        hinge sign) end up as after :meth:`markers_frame` of each frame; the
-        frames go to :meth:`OnlineJoint.update_many
-        <jointfit_core.estimator.OnlineJoint.update_many>` as one block.
-
-        Notes
-        -----
-        Per frame only where the sequential path needs the per-frame
-        output or check: a loaded calibration's templates are compared with
-        the first fully visible frames (:meth:`_check_layout`); the hinge
-        sign (``axis_toward_marker``) is fixed on the first output after
-        the first estimate, so while it is not fixed and
-        an estimate exists, frames go through :meth:`process` one by one
-        until it is. ``outputs`` counts the frames that would have had one
-        (an estimate exists and the parent was posed). A block the
-        estimator refuses (:class:`~jointfit_core.errors.InputError`: it
-        adds nothing then) is given frame by frame, so that the bad frames
-        are counted as ``malformed`` as :meth:`process` counts them. Joints
-        that pair the frames with a pose topic take them one by one.
-        """
-        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-        n = stamps_ns.shape[0]
-        self._sample = None
-        frames = self._in_workspace(frames)
-        if self.matcher is not None:
-            for k in range(n):
-                self.markers_frame(int(stamps_ns[k]), frames[k])
-            return
-        parent, child = frames[:, self.parent_rows], frames[:, self.child_rows]
-        k = 0
-        while k < n and self._layout_frames:  # a loaded calibration: compared with the live markers first
-            self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
-            k += 1
-        est = self.estimator  # (a new one when the loaded calibration was discarded)
-        while k < n and not self._sign_fixed and est.solution is not None and est.solution.identifiable:
-            self.process(int(stamps_ns[k]), parent[k], child[k], frames[k])
-            k += 1
-        if k == n:
-            return
-        stamps = stamps_ns[k:] * 1e-9
-        seen, not_posed = est.n_frames_seen, est.dropped.get("parent_not_posed", 0)
-        with_outputs = est.solution is not None
-        try:
-            est.update_many(parent[k:], child[k:], stamps)
-        except InputError:
-            for j in range(k, n):
-                self.process(int(stamps_ns[j]), parent[j], child[j], frames[j])
-            return
-        self.counters["frames"] += n - k
-        self._stamps.extend(stamps[-_RATE_SAMPLES:].tolist())
-        if self.live_geometry is not None:
-            self.live_geometry.offer(np.asarray(stamps, dtype=np.float64), frames[k:], est.templates)
-        if with_outputs:
-            posed = (est.n_frames_seen - seen) - (est.dropped.get("parent_not_posed", 0) - not_posed)
-            self.counters["outputs" if self._publishable() else "withheld_unidentified"] += posed
-
-    def _in_workspace(self, frames: FloatArray) -> FloatArray:
-        """``frames`` (..., P, 3) with absurd markers set missing (a copy when any is); counted.
-
-        Absurd (:meth:`MarkerScreen.screened <jointfit_ros.absurd_values.MarkerScreen.screened>`):
-        a coordinate beyond the ``workspace`` (when set), or a marker farther
-        from its segment's visible markers' mean than
-        :data:`~jointfit_ros.absurd_values.ABSURD_RADII` times the larger
-        template's rms radius (once the templates exist).
-        """
-        frames, n = self.screen.screened(frames, self._workspace_limit(), ABSURD_RADII * self.estimator.length_scale)
-        if n:
-            self.counters["absurd_markers"] += n
-            self.last_error = (
-                f"{n} absurd marker position(s) (beyond the workspace or far outside their segment) "
-                "treated as missing"
-            )
-        return frames
-
-    def _workspace_limit(self) -> float:
-        """:func:`workspace_limit` of the node's configuration (kept while :attr:`node` is the same object)."""
-        if self._limit_node is not self.node:
-            self._limit_node, self._limit = self.node, workspace_limit(self.node)
-        return self._limit
-
-    @staticmethod
-    def _with_chain(markers: FloatArray, names: tuple[str, ...], chain: dict[str, FloatArray]) -> FloatArray:
-        if not names:
-            return markers
-        nan = np.full(3, np.nan)
-        return np.concatenate([markers, np.stack([chain.get(n, nan) for n in names])])
-
-    def pose(self, source: int, stamp_ns: int, R: FloatArray, d: FloatArray) -> JointOutput | None:
-        """A rigid-body pose of the parent (``source`` 0) or the child (1), as virtual markers."""
-        assert self._virtual is not None
-        if not np.abs(d).max() <= workspace_limit(self.node):
-            self.counters["absurd_markers"] += 1
-            self.last_error = f"pose dropped: position {d.tolist()} beyond the workspace"
-            return None
-        return self._paired(source, stamp_ns, self._virtual @ R.T + d, None)
-
-    def _paired(self, source: int, stamp_ns: int, points: FloatArray, frame: FloatArray | None) -> JointOutput | None:
-        assert self.matcher is not None
-        before = self.matcher.unmatched
-        pair = self.matcher.add(source, stamp_ns, (points, frame))
-        self.counters["unmatched"] += self.matcher.unmatched - before
-        if pair is None:
-            return None
-        stamp, (parent, frame_p), (child, frame_c) = pair
-        return self.process(stamp, parent, child, frame_p if frame_p is not None else frame_c)
-
-    def process(
-        self, stamp_ns: int, parent: FloatArray, child: FloatArray, frame: FloatArray | None = None
-    ) -> JointOutput | None:
-        """Give one frame to the estimator; return its world output (None when there is none).
-
-        Never raises on bad data: malformed frames are counted and described in
-        :attr:`last_error`.
-        """
-        stamp = stamp_ns * 1e-9
-        if self._layout_frames:
-            self._check_layout(parent, child)
-        try:
-            out = self.estimator.update(parent, child, stamp)
-        except InputError as exc:
-            self.counters["malformed"] += 1
-            self.last_error = f"frame dropped: {exc}"
-            return None
-        self.counters["frames"] += 1
-        self._stamps.append(stamp)
-        if out is None:
-            return None
-        if not self._publishable():
-            self.counters["withheld_unidentified"] += 1
-            return None
-        if not self._sign_fixed and frame is not None:
-            out = self._fix_sign(out, frame)
-            if not self._sign_fixed:  # a configured sign convention not honoured yet: no axis pointing either way
-                self.counters["withheld_unsigned"] += 1
-                return None
-        sol = self.estimator.solution
-        if sol is not None and not sol.identifiable:
-            out = widened_output(out, max(self.estimator.length_scale, _lever(sol)))
-        if not output_sane(out, self._workspace_limit()):
-            self.counters["absurd_outputs"] += 1
-            self.last_error = f"output withheld: non-finite or beyond the workspace (position {out.position.tolist()})"
-            return None
-        self.counters["outputs"] += 1
-        return out
+    # ------------------------------------------------------------------ hinge sign (:mod:`.axis_convention`)
 
     @property
     def sign_pending(self) -> bool:
         """A hinge sign convention is configured and not chosen yet (its axis outputs are withheld until it is)."""
-        return not self._sign_fixed
-
-    def _publishable(self) -> bool:
-        """Whether per-frame outputs go out: the estimate is identifiable, or ``publish_unidentified``."""
-        sol = self.estimator.solution
-        return sol is not None and (sol.identifiable or self.cfg.publish_unidentified)
-
-    def lever_ratios(self) -> dict[str, float]:
-        """Per marker segment (``parent``, ``child``), the joint's distance from its cluster in cluster radii.
-
-        :attr:`OnlineJoint.lever_ratios <jointfit_core.estimator.OnlineJoint.lever_ratios>`;
-        empty before an estimate; a pose-topic segment (a rigid body's virtual markers) has none.
-        """
-        ratios = self.estimator.lever_ratios
-        if ratios is None:
-            return {}
-        topics = (self.cfg.parent_pose_topic, self.cfg.child_pose_topic)
-        return {side: round(r, 2) for side, r, topic in zip(("parent", "child"), ratios, topics, strict=True) if not topic}
+        return self.sign.pending
 
     def axis_words(self) -> str:
         """Which way the hinge axis points, in words (or that the sign is not chosen yet)."""
-        if self.sign_text:
-            return self.sign_text
-        if self.cfg.axis_toward_marker:
-            return (
-                f"not chosen yet ({self._sign_words()} once identifiable, statistical direction sd < "
-                f"{SIGN_SD_MAX_DEG:g} deg; no axis output until then)"
-            )
-        return "default: largest parent-frame component positive"
-
-    def _sign_words(self) -> str:
-        if self.cfg.axis_from_marker:
-            return f"from {self.cfg.axis_from_marker} toward {self.cfg.axis_toward_marker}"
-        return f"toward {self.cfg.axis_toward_marker} (beyond the clusters along the axis)"
-
-    def _fix_sign(self, out: JointOutput, frame: FloatArray) -> JointOutput:
-        """Point the hinge axis by the marker convention once, from an identified estimate; then keep that sign.
-
-        Until the estimate is identifiable with a statistical direction sd below
-        :data:`~jointfit_core.axis_sign.SIGN_SD_MAX_DEG`, nothing is chosen
-        (an unconverged direction can be anything); a convention that
-        cannot be honoured (:func:`~jointfit_core.axis_sign.hinge_sign`) is
-        reported in :attr:`sign_problem` and the default sign stays. The
-        statistical part (skin markers: without the soft-tissue prior) is what
-        more movement reduces; the artefact part is a bias of a few degrees
-        that cannot flip a sign read from markers whose line runs at least
-        :data:`~jointfit_core.axis_sign.MIN_ALONG_RATIO` along the axis (the
-        real knee fixture: total 5.2 deg, statistical 0.9 deg).
-        """
-        sol = self.estimator.solution
-        if not isinstance(sol, PoseSumsAxis) or out.direction is None or out.cov_direction is None:
-            return out
-        stat = self.estimator.statistical_solution
-        cov = stat.cov_direction_parent if isinstance(stat, PoseSumsAxis) else sol.cov_direction_parent
-        if not sol.identifiable or not direction_sd_deg(cov) < SIGN_SD_MAX_DEG:
-            return out
-        names = (self.cfg.axis_toward_marker, self.cfg.axis_from_marker)
-        choice = hinge_sign(
-            out.position,
-            out.direction,
-            frame[self._toward_row],
-            frame[self._from_row] if self._from_row >= 0 else None,
-            None if self._from_row >= 0 else frame[self._cluster_rows],
-            names,
-        )
-        if not choice.final:
-            return out
-        self._sign_fixed = True
-        if choice.sign == 0.0:
-            self.sign_problem = choice.reason
-            self.sign_text = "default (largest parent-frame component positive): " + choice.reason
-            return out
-        self.sign_text = self._sign_words()
-        self.estimator.set_reference_direction(choice.sign * sol.direction_parent)
-        self.estimate(force=True)
-        if choice.sign < 0.0:
-            out = replace(out, direction=-out.direction)
-        return out
-
-    # ------------------------------------------------------------------ estimates
-
-    def estimate(self, now: float | None = None, *, force: bool = False) -> bool:
-        """Re-solve the window when ``estimate_period`` has passed (``now`` in seconds, monotonic).
-
-        Returns True when the estimate is current (solved now, or no frame since the last solve).
-        Failures are counted and described.
-        """
-        if not self._due(now, force):
-            return False
-        try:
-            self.estimator.estimate()
-        except (NotIdentifiableError, InputError) as exc:
-            self._failed(exc)
-            return False
-        return True
-
-    def solve_request(self, now: float | None = None, *, force: bool = False) -> SolveRequest | None:
-        """:meth:`estimate` in two halves, for a solve in another process: the window's snapshot.
-
-        None when no solve is due or needed (see :meth:`estimate`); give the
-        :func:`~jointfit_core.estimator.solve_window` result (or the error it raised) to :meth:`install`.
-        """
-        if not self._due(now, force):
-            return None
-        try:
-            return self.estimator.solve_request()
-        except InputError as exc:
-            self._failed(exc)
-            return None
-
-    def install(self, result: SolveResult | JointfitError, request: SolveRequest | None = None) -> bool:
-        """Make a solve's result the estimate (False when stale: see :meth:`OnlineJoint.install`); count an error.
-
-        ``request``: the request answered; an error about a window that is gone
-        (:meth:`OnlineJoint.is_current <jointfit_core.estimator.OnlineJoint.is_current>`:
-        reset or frozen since) is dropped, not counted against the estimator there is now.
-        """
-        if isinstance(result, JointfitError):
-            if request is not None and not self.estimator.is_current(request):
-                return False
-            self._failed(result)
-            return False
-        return self.estimator.install(result)
-
-    def _due(self, now: float | None, force: bool) -> bool:
-        if not force and now is not None and now - self._last_solve < self.node.estimate_period:
-            return False
-        if now is not None:
-            self._last_solve = now
-        return not (self.estimator.frozen or not self.estimator.templates_ready or self.estimator.n_window < 3)
-
-    def _failed(self, exc: Exception) -> None:
-        self.counters["estimate_failures"] += 1
-        self.last_error = f"no estimate: {exc}"
+        return self.sign.words()
 
     # ------------------------------------------------------------------ services
 
     def reset(self) -> None:
-        """Forget the window, templates and estimate (the calibration file is untouched)."""
-        self.estimator = self._new_estimator()
-        self._sample = None
-        self._sign_fixed = not self.cfg.axis_toward_marker
-        self.sign_text = self.sign_problem = ""
-        self._layout_frames, self._layout_seen = False, []
-        if self.matcher is not None:
-            self.matcher.clear()
-        for key in self.counters:
-            self.counters[key] = 0
-        self.last_error = ""
-        self.loaded_from = ""
+        """Forget the window, templates and estimate (the calibration file is untouched), the done signal and the consistency check."""
+        super().reset()
         self.done = False
         self.auto_note = ""
         self.consistency = ConsistencyMonitor()
@@ -759,9 +178,9 @@ class JointRunner:
                 f"the estimate is not identifiable ({sol.reason}); set {self.cfg.name}.freeze_unidentified to "
                 f"{action} it anyway"
             )
-        if not self._sign_fixed:
+        if not self.sign.fixed:
             raise JointfitError(
-                f"the hinge sign ({self._sign_words()}) is not chosen yet: it waits for an identifiable estimate "
+                f"the hinge sign ({self.sign.convention()}) is not chosen yet: it waits for an identifiable estimate "
                 f"with a statistical direction sd below {SIGN_SD_MAX_DEG:g} deg and a frame with the marker(s) visible"
             )
 
@@ -780,17 +199,10 @@ class JointRunner:
         OSError
             The file cannot be written (the previous one is kept).
         """
-        path = self.calibration_path
+        path = self.calib.path
         if path is None:
             raise JointfitError(f"{self.cfg.name}.calibration_file is not set")
-        data = self.calibration()
-        kept = ""
-        if self._unloadable and path.exists():
-            aside = path.with_name(f"{path.name}.unloadable-{time.strftime('%Y%m%d-%H%M%S')}")
-            shutil.copy2(path, aside)
-            kept = f" (the unloadable previous file is kept as {aside})"
-        self.saved_unloadable()
-        return str(save_calibration(path, data)) + kept
+        return self.calib.write(path, self.calibration())
 
     def calibration(self) -> dict[str, Any]:
         """The joint's calibration as :meth:`save` writes it: the estimator's (settings, templates, estimate) and its record.
@@ -802,24 +214,28 @@ class JointRunner:
         """
         self._check_usable("save")
         data = self.estimator.to_dict()
-        data.update(self.identity())
+        data.update(self.calib.identity())
         return data
 
     # ------------------------------------------------------------------ diagnostics
 
-    def input_rate(self) -> float:
-        """Frames per second over the last frames given to the estimator (0 when fewer than 2)."""
-        if len(self._stamps) < 2 or self._stamps[-1] <= self._stamps[0]:
-            return 0.0
-        return (len(self._stamps) - 1) / (self._stamps[-1] - self._stamps[0])
+    def lever_ratios(self) -> dict[str, float]:
+        """Per marker segment (``parent``, ``child``), the joint's distance from its cluster in cluster radii.
+
+        :attr:`OnlineJoint.lever_ratios <jointfit_core.estimator.OnlineJoint.lever_ratios>`;
+        empty before an estimate; a pose-topic segment (a rigid body's virtual markers) has none.
+        """
+        ratios = self.estimator.lever_ratios
+        if ratios is None:
+            return {}
+        topics = (self.cfg.parent_pose_topic, self.cfg.child_pose_topic)
+        return {side: round(r, 2) for side, r, topic in zip(("parent", "child"), ratios, topics, strict=True) if not topic}
 
     def status(self) -> Status:
         """Level, message and values for ``/diagnostics`` (sets :attr:`done`; :func:`~jointfit_ros.joint_diagnostics.joint_status`)."""
         self.done = False
         st, self.done = joint_status(self)
         return st
-
-    # ------------------------------------------------------------------ done signal
 
     #: Whether the latest :meth:`status` was done (identifiable, no warning, sd <= target_sd, hinge sign chosen).
     done: bool = False
@@ -847,8 +263,6 @@ class JointRunner:
                 note += f", not saved: {exc}"
         self.auto_note = note
         return note
-
-    # ------------------------------------------------------------------ recent activity (wall clock)
 
     #: Inputs meant for this joint that the router dropped before they reached it (see :meth:`note_dropped`).
     _upstream_dropped: int = 0

@@ -27,7 +27,7 @@ def test_compact_shortcut_gives_the_segment_by_segment_verdicts() -> None:
     assert fast.estimator.length_scale > 0.0  # templates built: the shortcut applies
     slow.screen.compact_starts = None
     rng = np.random.default_rng(1)
-    rows = fast._cluster_rows
+    rows = fast.screen.cluster_rows
     shortcuts = 0
     for k in range(150, 400):
         frame = frames[k].copy()
