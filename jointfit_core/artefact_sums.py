@@ -118,42 +118,6 @@ def feature_sums(Q: FloatArray, t: FloatArray, moments: bool = False) -> FloatAr
     return out
 
 
-def feature_sums_one(z: FloatArray, moments: bool = False) -> FloatArray:
-    """:func:`feature_sums` of one relative pose ``z = [Q | t]`` (3, 4): its contribution (L,).
-
-    The per-frame path's form (scalar rotation vector, no batch overhead); equal to the
-    batched one to rounding (tested). :func:`feature_sums_into` writes the same numbers in place.
-    """
-    out = np.empty(N_FEATURE_SUMS + (N_FEATURE_MOMENTS if moments else 0))
-    feature_sums_into(z, out[:N_FEATURE_SUMS], out[N_FEATURE_SUMS:] if moments else None)
-    return out
-
-
-def feature_sums_into(z: FloatArray, sums: FloatArray, moments: FloatArray | None = None) -> None:
-    """:func:`feature_sums_one` of ``z = [Q | t]`` (3, 4) written into ``sums`` (:data:`N_FEATURE_SUMS`,) and ``moments``.
-
-    ``moments`` (:data:`N_FEATURE_MOMENTS`,) or None (no moments). Both contiguous (views of the
-    estimator's contribution, written in place on its per-frame path).
-    """
-    (q00, q01, q02, _), (q10, q11, q12, _), (q20, q21, q22, _) = z.tolist()
-    theta = math.acos(min(max((q00 + q11 + q22 - 1.0) * 0.5, -1.0), 1.0))
-    sin = math.sin(theta)
-    ratio = theta / sin if sin > 1e-9 else 1.0
-    a, b, c = 0.5 * (q21 - q12) * ratio, 0.5 * (q02 - q20) * ratio, 0.5 * (q10 - q01) * ratio
-    f = np.array([a, b, c, a * a, b * b, c * c, a * b, a * c, b * c])
-    sums[_F] = f
-    Q, t = z[:, :3], z[:, 3]
-    q = Q.ravel()
-    np.multiply.outer(q, f, out=sums[_QF].reshape(9, 9))
-    np.multiply.outer(t, f, out=sums[_TF].reshape(3, 9))
-    np.multiply.outer(t @ Q, f, out=sums[_PF].reshape(3, 9))
-    sums[_FF] = f @ f
-    if moments is not None:
-        ff = moments[: _FFS.stop - _FFS.start]
-        np.multiply(f[_PAIRS[0]], f[_PAIRS[1]], out=ff)
-        np.multiply.outer(ff, q, out=moments[_FFS.stop - _FFS.start :].reshape(-1, 9))
-
-
 def _ball_normal_matrix(n: float, S: FloatArray) -> FloatArray:
     """``A = [[n I, -S], [-S^T, n I]]`` (6, 6), the normal matrix of Stoddart's eq. 9."""
     A = np.empty((6, 6))

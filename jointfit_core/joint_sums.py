@@ -146,23 +146,8 @@ class RelativePoseSums:
         self._sums: SlidingSums | None = None
         self._pending: list[_PendingFrame] = []  # frames added, not yet summed (add_frame)
         self.chained = False
-        c = np.zeros(self.n_sums)
-        c[0] = 1.0
-        self._contribution = c
-        self._pairs: PairSet | None = None  # the pair set whose W and dofs the contribution holds
-        # Views of the contribution, written in place: Z = [Q | t], vec(Z) and its outer product.
-        self._z_view = c[_Z].reshape(3, 4)
-        self._zf_view = c[_Z]
-        self._outer_view = c[_ZZ].reshape(12, 12)
-        self._x_buf = np.zeros((3, 4))  # [R_c | d_c - d_p]
         self._z_prev = np.zeros((3, 4))  # Z of the previous frame that entered the statistics
         self._history = LagHistory()  # recent frames in the statistics, for the pairs at lags in seconds
-        self._tl_view = c[_TL]
-        self._pair_view = c[_LAG + 1 : _LAG + 13].reshape(3, 4)
-        self._cross_view = c[_LAG + 13 : _LAG + 29].reshape(4, 4)
-        self._fs_view = c[_FS]  # the soft-tissue feature sums, then (skin hinges) their moments
-        self._fm_view = c[_FM] if moments else None
-        self._wn_view = c[_WN]
         self._second = SecondDifferences()  # skin: the white-noise sums' last two frames
 
     @property

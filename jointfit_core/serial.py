@@ -467,19 +467,13 @@ class LagHistory:
     def __init__(self, lags_s: tuple[float, ...] = SERIAL_LAGS_S) -> None:
         self.lags = np.asarray(lags_s, dtype=np.float64)
         self.horizon = (1.0 + LAG_TOLERANCE) * float(self.lags.max())
-        self._lags = [float(x) for x in self.lags]
         self._t = np.empty(256)
         self._z = np.empty((256, 12))
         self._n = 0
-        self._ptr = [0] * len(self._lags)  # per lag, a frame at or before its last target (per-frame path)
-        self._times: list[float] = []  # the times as Python floats (the per-frame path's search)
-        self._vals = np.zeros((len(self._lags), _NODE))
 
     def clear(self) -> None:
         """Forget the frames (a break: no pair reaches across it)."""
         self._n = 0
-        self._ptr = [0] * len(self._lags)
-        self._times = []
 
     def _append(self, t: FloatArray, z: FloatArray) -> int:
         """Append (trimming what no new frame can pair with); the index of the first new frame."""
@@ -493,78 +487,15 @@ class LagHistory:
             t_new, z_new = np.empty(size), np.empty((size, 12))
             t_new[:keep], z_new[:keep] = self._t[first : self._n], self._z[first : self._n]
             self._t, self._z = t_new, z_new
-            self._ptr = [max(p - first, 0) for p in self._ptr]
         elif self._n + m > self._t.size:
             self._t[:keep] = self._t[first : self._n].copy()
             self._z[:keep] = self._z[first : self._n].copy()
-            self._ptr = [max(p - first, 0) for p in self._ptr]
         else:  # room after the frames kept as they are (older ones included: they pair with nothing new)
             keep = self._n
         self._t[keep : keep + m] = t
         self._z[keep : keep + m] = z
         self._n = keep + m
-        self._times = self._t[: self._n].tolist()
         return keep
-
-    def contribution_one(self, time: float, z: FloatArray, out: FloatArray) -> None:
-        """:meth:`contributions` of one frame, ``out`` (N_TIME_LAG_SUMS,); equal to it (tested).
-
-        The per-frame path: a pointer per lag walks forward through the times (a step or two per
-        frame, on Python floats) instead of a binary search, and the pairs are written in one go.
-        """
-        n = self._n
-        T = self._times
-        if n and not time > T[n - 1]:
-            self.clear()
-            n = 0
-            T = self._times
-        if n == self._t.size:
-            self._append(np.array([time]), z.reshape(1, 12))
-            n = self._n - 1
-            T = self._times
-        else:
-            self._t[n] = time
-            self._z[n] = z.reshape(12)
-            self._n = n + 1
-            T.append(time)
-        if n == 0:
-            out.fill(0.0)
-            return
-        ptr = self._ptr
-        rows: list[int] = []
-        gaps: list[float] = []
-        lags: list[int] = []
-        for j, lag in enumerate(self._lags):
-            target = time - lag
-            p = ptr[j]
-            if p >= n:
-                p = n - 1
-            while p + 1 < n and T[p + 1] <= target:
-                p += 1
-            ptr[j] = p
-            if p + 1 < n and abs(T[p + 1] - target) < abs(T[p] - target):
-                p += 1
-            gap = time - T[p]
-            if abs(gap - lag) <= LAG_TOLERANCE * lag:
-                rows.append(p)
-                gaps.append(gap)
-                lags.append(j)
-        every = len(rows) == len(self._lags)  # (the usual frame: its pairs are all of out's blocks, written in place)
-        if not every:
-            out.fill(0.0)
-        out[0] = 1.0
-        out[1] = time - T[n - 1]
-        if not rows:
-            return
-        prev = self._z[rows].reshape(-1, 3, 4)
-        blocks = out[2:].reshape(len(self._lags), _NODE)
-        vals = blocks if every else self._vals[: len(rows)]
-        vals[:, 0] = 1.0
-        vals[:, 1:13] = (prev + z).reshape(-1, 12)
-        vals[:, 13:29] = np.matmul(z.T, prev).reshape(-1, 16)
-        vals[:, 29] = gaps
-        if not every:
-            blocks[lags] = vals
 
     def contributions(self, times: FloatArray, z: FloatArray, out: FloatArray) -> None:
         """Add frames and write their contributions (M, :data:`N_TIME_LAG_SUMS`) to ``out``.

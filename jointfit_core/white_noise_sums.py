@@ -13,13 +13,8 @@ white noise is ``sqrt(ss / dof)`` (:func:`white_noise_from_sums`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from numpy.typing import NDArray
-
-if TYPE_CHECKING:
-    from .segment_pair import PairSet
 
 __all__ = ["MIN_WHITE_MARKERS", "SecondDifferences", "white_noise_from_sums"]
 
@@ -55,51 +50,9 @@ class SecondDifferences:
         self._newer: FloatArray | None = None  # the last frame
         self._codes: tuple[int, int, int, int] = (-1, -1, -1, -1)  # visible-marker codes: older (p, c), newer (p, c)
         self._last_paired = False  # whether the newer one was chained to the older
-        self._masks: dict[int, tuple[PairSet, FloatArray, FloatArray]] = {}  # per pair-set slot: its (2, Pmax, 1) mask, dofs
-
-    def _mask(self, pairs: PairSet) -> tuple[FloatArray, FloatArray]:
-        """The pair set's markers (1.0 where the pose used them, (2, Pmax, 1)) and each segment's triple dof (2,)."""
-        got = self._masks.get(pairs.slot)
-        if got is None or got[0] is not pairs:
-            n = np.array([0.0 if vs is None else vs.n for vs in (pairs.parent, pairs.child)])
-            dof = np.where(n >= MIN_WHITE_MARKERS, 6.0 * (3.0 * n - 6.0), 0.0)
-            got = (pairs, (pairs.wn > 0.0).astype(np.float64)[:, :, None], dof)
-            self._masks[pairs.slot] = got
-        return got[1], got[2]
-
-    def add_one(self, Y: FloatArray, pairs: PairSet, R: FloatArray, d: FloatArray, paired: bool, out: FloatArray) -> None:
-        """One frame entering the statistics: write ``(ss_p, dof_p, ss_c, dof_c)`` into ``out`` (4,).
-
-        ``Y`` (2, Pmax, 3): both segments' markers (input units; missing rows anything);
-        ``pairs``: its visible marker sets (the pose's); ``R`` (2, 3, 3), ``d`` (2, 3): the poses;
-        ``paired``: whether the frame is chained to the last frame this saw.
-        """
-        local = np.matmul(Y - d[:, None, :], R)  # rows R^T (y - d)
-        codes = (
-            -1 if pairs.parent is None else pairs.parent.code,
-            -1 if pairs.child is None else pairs.child.code,
-        )
-        older, newer, seen = self._older, self._newer, self._codes
-        out[:] = 0.0
-        if paired and self._last_paired and older is not None and newer is not None:
-            same = [codes[k] >= 0 and codes[k] == seen[k] == seen[2 + k] for k in range(2)]
-            if same[0] or same[1]:
-                mask, dof = self._mask(pairs)
-                d2 = local - newer
-                d2 -= newer
-                d2 += older
-                d2 *= mask
-                ss = np.einsum("kpi,kpi->k", d2, d2)
-                for k in range(2):
-                    if same[k] and dof[k] > 0.0:
-                        out[2 * k] = ss[k]
-                        out[2 * k + 1] = dof[k]
-        self._older, self._newer = newer, local
-        self._codes = (seen[2], seen[3], codes[0], codes[1])
-        self._last_paired = bool(paired)
 
     def add_many(self, Y: FloatArray, wn: FloatArray, R: FloatArray, d: FloatArray, paired: BoolArray) -> FloatArray:
-        """Frames entering the statistics in order: :meth:`add_one` of each, (M, 4) returned.
+        """Frames entering the statistics in order: ``(ss_p, dof_p, ss_c, dof_c)`` of each, (M, 4) returned.
 
         ``Y`` (M, 2, Pmax, 3), ``wn`` (M, 2, Pmax), ``R`` (M, 2, 3, 3), ``d`` (M, 2, 3), ``paired`` (M,).
         """

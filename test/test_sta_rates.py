@@ -81,7 +81,7 @@ def test_lag_history_pairs_in_blocks_equal_those_one_by_one() -> None:
     one = np.zeros((n, N_TIME_LAG_SUMS))
     history = LagHistory()
     for k in range(n):
-        history.contribution_one(float(times[k]), z[k], one[k])
+        history.contributions(times[k : k + 1], z[k : k + 1], one[k : k + 1])
     cuts = [0, *sorted(rng.choice(np.arange(1, n), 25, replace=False).tolist()), n]
     blocks = np.zeros_like(one)
     history = LagHistory()
@@ -103,7 +103,7 @@ def test_lag_history_pairs_in_blocks_equal_those_one_by_one() -> None:
     one_back, block_back = np.zeros_like(one), np.zeros_like(one)
     history = LagHistory()
     for k in range(n):
-        history.contribution_one(float(times_back[k]), z[k], one_back[k])
+        history.contributions(times_back[k : k + 1], z[k : k + 1], one_back[k : k + 1])
     LagHistory().contributions(times_back, z, block_back)
     np.testing.assert_array_equal(block_back, one_back)
     assert not block_back[2500, 2::30].any() and block_back[2500, 0] == 0.0

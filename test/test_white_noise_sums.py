@@ -131,16 +131,13 @@ def test_second_differences_need_three_chained_frames_with_the_same_markers() ->
     frames = rng.normal(size=(6, 2, 4, 3))
     paired = np.array([False, True, True, True, False, True])
     sets = [partial if k == 3 else full for k in range(6)]
-    sd = SecondDifferences()
-    out = np.empty(4)
-    got = []
-    for k in range(6):
-        sd.add_one(frames[k], sets[k], R[k], d[k], bool(paired[k]), out)
-        got.append(out.copy())
+    wn = np.stack([ps.wn for ps in sets])
+    sd = SecondDifferences()  # one frame at a time: blocks of one
+    got = [sd.add_many(frames[k : k + 1], wn[k : k + 1], R[k : k + 1], d[k : k + 1], paired[k : k + 1])[0] for k in range(6)]
     local = np.matmul(frames - d[:, :, None, :], R)  # R^T (y - d) as rows
     d2 = local[2] - 2 * local[1] + local[0]
     np.testing.assert_allclose(got[2], [np.sum(d2[0] ** 2), 36.0, np.sum(d2[1] ** 2), 36.0], rtol=1e-12)
     assert not got[0].any() and not got[1].any() and not got[4].any() and not got[5].any()
     assert got[3][1] == 36.0 and got[3][3] == 0.0  # the parent's triple stands, the child's markers changed
-    many = SecondDifferences().add_many(frames, np.stack([ps.wn for ps in sets]), R, d, paired)
+    many = SecondDifferences().add_many(frames, wn, R, d, paired)
     np.testing.assert_allclose(many, np.array(got), rtol=1e-12)
