@@ -11,7 +11,9 @@ solves the closed forms (:func:`~jointfit_core.segments.centre_from_pose_sums`,
 widens their covariances by the frame-to-frame correlation of the joint
 residual (:mod:`jointfit_core.serial`). Its block path (:meth:`OnlineJoint.update_many`)
 is :mod:`jointfit_core.joint_blocks`, its calibration file (:meth:`OnlineJoint.to_dict`,
-:meth:`OnlineJoint.from_dict`) :mod:`jointfit_core.joint_file`.
+:meth:`OnlineJoint.from_dict`) :mod:`jointfit_core.joint_file`, its constructor's checks
+(and the virtual markers of a pose stream, :func:`virtual_markers_template`)
+:mod:`jointfit_core.joint_args`.
 """
 
 from __future__ import annotations
@@ -24,10 +26,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import joint_blocks, joint_file
-from .artefact import check_attachment
 from .checks import check_frame, check_vector3
 from .errors import InputError
 from .hinge_from_sums import PoseSumsAxis
+from .joint_args import check_settings, virtual_markers_template
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
 from .joint_sums import RelativePoseSums
@@ -35,7 +37,7 @@ from .joint_world import JointOutput, WorldOutput
 from .lever import lever_ratios
 from .pose import MIN_POSE_MARKERS
 from .segment_pair import GateVerdict, PairSet, SegmentPair, poses
-from .segment_tracker import GATE_REFRESH_FRAMES, shape_ok
+from .segment_tracker import GATE_REFRESH_FRAMES
 from .segments import (
     PoseSums,
     PoseSumsCentre,
@@ -45,7 +47,7 @@ from .serial import (
     SerialInflation,
     TimeLagSums,
 )
-from .stats import WindowSpec, window_spec
+from .stats import WindowSpec
 from .window_solve import (
     SKIN_MIN_MOVEMENT_S,
     SolveRequest,
@@ -71,111 +73,6 @@ FloatArray = NDArray[np.float64]
 #: Outlier gate: the noise sigma it assumes is at least this fraction of the templates' rms radius
 #: (noise-free or rounding-level data would otherwise fail it in every frame).
 GATE_SIGMA_FLOOR = 1e-6
-
-_KINDS = ("ball", "hinge")
-
-
-def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple[FloatArray, float]:
-    """Virtual markers that stand for a rigid-body pose with the given noise.
-
-    A pose stream (e.g. ``geometry_msgs/PoseStamped`` from a mocap rigid
-    body) is turned into four virtual markers ``R x_i + d`` at the vertices
-    of a regular tetrahedron ``x_i``. Fitting them with marker noise
-    ``sigma`` per coordinate gives a pose whose translation has standard
-    deviation ``sigma / 2`` per axis and whose rotation has ``sigma / (L
-    sqrt(8/3))`` radians per axis (``L`` the vertex radius); choosing
-    ``sigma = 2 translation_sd`` and ``L = sigma / (rotation_sd sqrt(8/3))``
-    reproduces the pose noise the user states.
-
-    Parameters
-    ----------
-    translation_sd : float
-        Standard deviation of the pose's position per axis (input units).
-    rotation_sd : float
-        Standard deviation of its orientation per axis (radians).
-
-    Returns
-    -------
-    template : ndarray, shape (4, 3)
-        Vertex coordinates in the body frame (centroid at the origin).
-    noise_std : float
-        The marker noise ``sigma`` to give :class:`OnlineJoint`.
-    """
-    if not (np.isfinite(translation_sd) and translation_sd > 0 and np.isfinite(rotation_sd) and rotation_sd > 0):
-        raise InputError(
-            f"pose noise: expected positive translation and rotation sd, got {translation_sd!r}, {rotation_sd!r}"
-        )
-    sigma = 2.0 * float(translation_sd)
-    radius = sigma / (float(rotation_sd) * np.sqrt(8.0 / 3.0))
-    tetra = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]) / np.sqrt(3.0)
-    return radius * tetra, sigma
-
-
-# --------------------------------------------------------------------------- the constructor's checks
-
-
-def _check_n_markers(n_markers: tuple[int, int] | None) -> tuple[int, int] | None:
-    """:class:`OnlineJoint`'s ``n_markers`` checked: two counts of at least :data:`~jointfit_core.pose.MIN_POSE_MARKERS`, or None."""
-    if n_markers is None:
-        return None
-    if len(n_markers) != 2 or min(int(n_markers[0]), int(n_markers[1])) < MIN_POSE_MARKERS:
-        raise InputError(f"n_markers: expected two counts >= {MIN_POSE_MARKERS}, got {n_markers!r}")
-    return (int(n_markers[0]), int(n_markers[1]))
-
-
-def _check_templates(
-    templates: tuple[ArrayLike | None, ArrayLike | None] | None, n_markers: tuple[int, int] | None
-) -> tuple[tuple[FloatArray | None, FloatArray | None], tuple[int, int] | None]:
-    """:class:`OnlineJoint`'s fixed ``templates`` checked against ``n_markers`` (checked).
-
-    Returns
-    -------
-    templates : (ndarray or None, ndarray or None)
-        Parent (Pa, 3) and child (Pc, 3) float64 copies, input units (None: to build).
-    n_markers : (int, int) or None
-        ``n_markers``, or the fixed templates' counts when it is None.
-
-    Raises
-    ------
-    InputError
-        Not a pair, a template not (P >= 3, 3), non-finite or collinear, or
-        its count not that of ``n_markers``; one template fixed without ``n_markers``.
-    """
-    fixed: list[FloatArray | None] = [None, None]
-    if templates is not None:
-        if len(templates) != 2:
-            raise InputError("templates: expected a pair (parent, child); None for a template to build")
-        for k, x in enumerate(templates):
-            if x is None:
-                continue
-            arr = np.array(x, dtype=np.float64)
-            if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < MIN_POSE_MARKERS:
-                raise InputError(f"templates: expected arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
-            if not (np.isfinite(arr).all() and shape_ok(arr)):
-                raise InputError("templates: expected finite, non-collinear template points")
-            if n_markers is not None and n_markers[k] != arr.shape[0]:
-                raise InputError(f"templates: {arr.shape[0]} points differ from n_markers {n_markers}")
-            fixed[k] = arr
-        if any(x is not None for x in fixed) and n_markers is None:
-            if fixed[0] is None or fixed[1] is None:
-                raise InputError("templates: with one template fixed, give n_markers for both segments")
-            n_markers = (fixed[0].shape[0], fixed[1].shape[0])
-    return (fixed[0], fixed[1]), n_markers
-
-
-def _check_noise(noise_std: tuple[float | None, float | None] | None) -> tuple[float | None, float | None]:
-    """:class:`OnlineJoint`'s fixed ``noise_std`` checked: two finite numbers > 0 or None (input units)."""
-    noise: list[float | None] = [None, None]
-    if noise_std is not None:
-        try:
-            for k in range(2):
-                if noise_std[k] is not None:
-                    noise[k] = float(noise_std[k])  # type: ignore[arg-type]
-        except (TypeError, ValueError, IndexError):
-            raise InputError(f"noise_std: expected two numbers > 0 (or None), got {noise_std!r}") from None
-        if any(v is not None and not (np.isfinite(v) and v > 0) for v in noise):
-            raise InputError(f"noise_std: expected finite numbers > 0 (or None), got {noise_std!r}")
-    return (noise[0], noise[1])
 
 
 # --------------------------------------------------------------------------- solving a window
@@ -241,6 +138,10 @@ class OnlineJoint:
         not posed in that frame. Ghost markers and jumps are dropped before
         they reach the statistics or the per-frame output; smooth skin
         deformation passes (see Notes, :attr:`gated_frames`).
+    attachment : {"rigid", "skin"} or (str, str)
+        How the parent's and the child's markers are attached (one for both,
+        or a pair; :func:`~jointfit_core.artefact.check_attachment`): skin
+        markers add the soft-tissue part to the estimate's covariances.
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -346,31 +247,32 @@ class OnlineJoint:
         gate: float = 5.0,
         attachment: str | tuple[str, str] = "rigid",
     ) -> None:
-        if kind not in _KINDS:
-            raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
-        self.kind = kind
-        self.spec: WindowSpec = window_spec(window, window_s=window_s, half_life=half_life, half_life_s=half_life_s)
-        if isinstance(template_frames, bool) or int(template_frames) < 1:
-            raise InputError(f"template_frames: expected a positive integer, got {template_frames!r}")
-        self.template_frames = int(template_frames)
-        self.reference_direction = (
-            None
-            if reference_direction is None
-            else check_vector3(reference_direction, name="reference_direction", unit=True)
+        settings = check_settings(
+            kind,
+            window,
+            window_s=window_s,
+            half_life=half_life,
+            half_life_s=half_life_s,
+            template_frames=template_frames,
+            reference_direction=reference_direction,
+            n_markers=n_markers,
+            templates=templates,
+            noise_std=noise_std,
+            serial_correlation=serial_correlation,
+            gate=gate,
+            attachment=attachment,
         )
-        self._templates_arg, n_markers = _check_templates(templates, _check_n_markers(n_markers))
-        self._noise_arg = _check_noise(noise_std)
-        self._n_markers_arg = n_markers
-        if not isinstance(serial_correlation, (bool, np.bool_)):
-            raise InputError(f"serial_correlation: expected True or False, got {serial_correlation!r}")
-        self.serial_correlation = bool(serial_correlation)
-        if isinstance(gate, bool) or not isinstance(gate, (int, float, np.floating)) or not (
-            np.isfinite(gate) and gate >= 0.0
-        ):
-            raise InputError(f"gate: expected a number >= 0 (0: off), got {gate!r}")
-        self.gate = float(gate)
+        self.kind = settings.kind
+        self.spec: WindowSpec = settings.spec
+        self.template_frames = settings.template_frames
+        self.reference_direction = settings.reference_direction
+        self._templates_arg = settings.templates
+        self._noise_arg = settings.noise_std
+        self._n_markers_arg = settings.n_markers
+        self.serial_correlation = settings.serial_correlation
+        self.gate = settings.gate
         #: ``("skin" | "rigid", "skin" | "rigid")``: how the parent's and the child's markers are attached.
-        self.attachment: tuple[str, str] = check_attachment(attachment)
+        self.attachment = settings.attachment
         self._skin = "skin" in self.attachment
         self._moments = self._skin and self.kind == "hinge"
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
