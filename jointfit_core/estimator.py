@@ -13,13 +13,14 @@ residual (:mod:`jointfit_core.serial`). Its block path (:meth:`OnlineJoint.updat
 is :mod:`jointfit_core.joint_blocks`, its calibration file (:meth:`OnlineJoint.to_dict`,
 :meth:`OnlineJoint.from_dict`) :mod:`jointfit_core.joint_file`, its constructor's checks
 (and the virtual markers of a pose stream, :func:`virtual_markers_template`)
-:mod:`jointfit_core.joint_args`.
+:mod:`jointfit_core.joint_args`, its outlier gate's limits and what follows a
+failing segment :mod:`jointfit_core.joint_outliers`, and its frame numbers and
+stamps a :class:`~jointfit_core.frame_clock.FrameClock`.
 """
 
 from __future__ import annotations
 
 import itertools
-import math
 from typing import Any
 
 import numpy as np
@@ -28,16 +29,17 @@ from numpy.typing import ArrayLike, NDArray
 from . import joint_blocks, joint_file
 from .checks import check_frame, check_vector3
 from .errors import InputError
+from .frame_clock import FrameClock
 from .hinge_from_sums import PoseSumsAxis
 from .joint_args import check_settings, virtual_markers_template
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
+from .joint_outliers import GateLimits, after_failure
 from .joint_sums import RelativePoseSums
 from .joint_world import JointOutput, WorldOutput
 from .lever import lever_ratios
 from .pose import MIN_POSE_MARKERS
-from .segment_pair import GateVerdict, PairSet, SegmentPair, poses
-from .segment_tracker import GATE_REFRESH_FRAMES
+from .segment_pair import SegmentPair, poses
 from .segments import (
     PoseSums,
     PoseSumsCentre,
@@ -69,11 +71,6 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-
-#: Outlier gate: the noise sigma it assumes is at least this fraction of the templates' rms radius
-#: (noise-free or rounding-level data would otherwise fail it in every frame).
-GATE_SIGMA_FLOOR = 1e-6
-
 
 # --------------------------------------------------------------------------- solving a window
 
@@ -130,7 +127,7 @@ class OnlineJoint:
         residual test, rms residual above ``gate`` times the segment's own pooled
         pose-fit residual, while moving more than usual; both limits read
         again every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames,
-        :meth:`_gate_sigma`) has its labels put right when its markers are
+        :meth:`GateLimits.sigma <jointfit_core.joint_outliers.GateLimits.sigma>`) has its labels put right when its markers are
         its reference's under other labels (a swap,
         :meth:`~jointfit_core.segment_pair.SegmentPair.relabel`,
         :attr:`relabelled_frames`), else loses its worst-fitting marker and is
@@ -296,7 +293,6 @@ class OnlineJoint:
         self._solved_version = 0
         self._generation = next(_GENERATIONS)
         self._frozen = False
-        self._last_stamp: float | None = None
         self.dropped: dict[str, int] = {}
         self.n_frames_seen = 0
         #: The latest :meth:`update` frame's segment poses, after the gate: ``(R (2, 3, 3), d (2, 3),
@@ -310,11 +306,11 @@ class OnlineJoint:
         self._artefact_scale = 0.0
         self._white_sigma: tuple[float, float] | None = None
         self._matched: FloatArray | None = None  # hinge: point_child_matched (joint_file.matched_child_point)
-        # The outlier gate: frames are numbered as they arrive (see _arrive: its turn test's clock);
-        # its limits are cached (_gate_var); each segment's memory is in its tracker.
-        self._arrivals = 0
-        self._gate_key: tuple[float, int] | None = None
-        self._gate_cache: FloatArray | None = None
+        # Frames are numbered as they arrive, and their stamps checked (FrameClock; the clock of the outlier
+        # gate's turn test and of its limits' refresh). The gate's limits are cached (GateLimits); each
+        # segment's memory is in its tracker.
+        self._clock = FrameClock(self.spec)
+        self._limits = GateLimits(self.gate, self._noise_arg)
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
         self.joint_gated_frames = 0
@@ -486,9 +482,9 @@ class OnlineJoint:
             return self._after_fill(stamp)
         yp = check_frame(parent, None if self.n_markers is None else self.n_markers[0], name="parent")
         yc = check_frame(child, None if self.n_markers is None else self.n_markers[1], name="child")
-        number = self._arrive()
-        ok, st = self._accept_stamp(stamp)
+        number, st, ok = self._clock.arrive(stamp)
         if not ok:
+            self._drop("stamp_not_increasing")
             return None
         if self._pose is None:
             if yp.shape[0] < MIN_POSE_MARKERS or yc.shape[0] < MIN_POSE_MARKERS:
@@ -546,111 +542,15 @@ class OnlineJoint:
         """
         joint_blocks.update_many(self, parent, child, stamps)
 
-    def _arrive(self) -> int:
-        """Number a frame that arrived (well-formed, whatever its stamp): the turn test's clock."""
-        self._arrivals += 1
-        return self._arrivals
-
-    def _accept_stamp(self, stamp: float | None) -> tuple[bool, float | None]:
-        """Check a frame's stamp; (False, _) when it does not increase (dropped and counted)."""
-        st = None if stamp is None else float(stamp)
-        if st is not None and not np.isfinite(st):
-            raise InputError(f"stamp: expected a finite number of seconds, got {stamp!r}")
-        if self.spec.needs_stamps and st is None:
-            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
-        if st is not None and self._last_stamp is not None and st <= self._last_stamp:
-            self._drop("stamp_not_increasing")
-            return False, st
-        if st is not None:
-            self._last_stamp = st
-        return True, st
-
     def _after_fill(self, stamp: float | None) -> JointOutput | None:
         pose = self._pose
         assert pose is not None
-        number = self._arrive()
-        ok, st = self._accept_stamp(stamp)
+        number, st, ok = self._clock.arrive(stamp)
         if not ok:
+            self._drop("stamp_not_increasing")
             return None
         self.n_frames_seen += 1
         return self._add(pose.missing, st, number)
-
-    def _gate_var(self) -> FloatArray | None:
-        """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
-
-        ``sigma``: :meth:`_gate_sigma`. None while the gate is off or there is no noise level
-        (fixed templates before any frame posed the segments). Sets the segments'
-        limits with it (:meth:`~jointfit_core.segment_tracker.SegmentTracker.set_limits`:
-        the residual's, and ``gate^2`` times each segment's normal jump,
-        :class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again every
-        :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames, counted as they
-        arrive (per-frame cost; the update and block paths then judge alike,
-        :func:`~jointfit_core.joint_blocks.update_many` cutting its blocks there), and not
-        with the joint's estimates: the limits are the segments' own, so that joints sharing a
-        segment judge it alike.
-        """
-        key = (self.gate, self._arrivals // GATE_REFRESH_FRAMES)
-        if key != self._gate_key:
-            self._gate_key = key
-            sigma = self._gate_sigma()
-            if self.gate <= 0.0 or min(sigma) <= 0.0:
-                self._gate_cache = None
-            else:
-                assert self._pose is not None
-                segs = (self._pose.parent, self._pose.child)
-                # noise-free data: sigmas of rounding would gate every frame
-                floor = GATE_SIGMA_FLOOR * np.array([seg.rms_radius for seg in segs])
-                s = np.maximum(sigma, floor)
-                self._gate_cache = np.square(self.gate * s)
-                for seg, sk, var, fk in zip(segs, s, self._gate_cache, floor, strict=True):
-                    seg.set_limits(float(var), seg.shape.normal_jump(float(sk), float(fk)), self.gate)
-        return self._gate_cache
-
-    def _gate_sigma(self) -> FloatArray:
-        """Per segment (2,), the residual level the gate's residual test holds (input units).
-
-        Each segment's own pooled pose-fit residual
-        (:meth:`~jointfit_core.segment_tracker.SegmentTracker.pooled_level`: white noise, plus
-        on skin markers the cluster's deformation, over the frames that posed it, whatever the
-        other segment did); before a segment has any: the noise seen while building its
-        template, else the latest estimate's noise (a calibration loaded). A fixed
-        ``noise_std`` is used as given.
-        """
-        assert self._pose is not None
-        sigma = np.zeros(2)
-        for k, seg in enumerate((self._pose.parent, self._pose.child)):
-            level = seg.pooled_level()
-            if self._noise_arg[k] is not None:
-                sigma[k] = float(self._noise_arg[k])  # type: ignore[arg-type]
-            elif level is not None:
-                sigma[k] = math.sqrt(max(level, 0.0))
-            elif seg.template_sigma > 0.0:
-                sigma[k] = seg.template_sigma
-            elif self._solution is not None:
-                sigma[k] = self._sigma[k]
-        return sigma
-
-    def _gated(
-        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int, stamp: float | None
-    ) -> NDArray[np.bool_]:
-        """The missing-marker mask after the gate (:meth:`~jointfit_core.segment_pair.SegmentPair.hold_out`), counted.
-
-        A failing segment's left-out markers are counted as ``<segment>_gated_markers``; a segment
-        that loses all its markers (not posed) as ``<segment>_gated``; each failing segment's frame
-        goes to :attr:`gate_log`.
-        """
-        pose = self._pose
-        assert pose is not None
-        out, held = pose.hold_out(missing, ps, verdict, frame_no)
-        for k, dropped in held:
-            if self.gate_log is not None:
-                self.gate_log.append((frame_no, k, np.nan if stamp is None else stamp))
-            name = pose.tracker(k).name
-            if dropped is None:
-                self._drop(f"{name}_gated")
-            else:
-                self.dropped[f"{name}_gated_markers"] = self.dropped.get(f"{name}_gated_markers", 0) + dropped
-        return out
 
     def _add(
         self,
@@ -685,26 +585,15 @@ class OnlineJoint:
             Y[missing] = 0.0  # _poses needs zeros where a marker is missing
         R, d, ss = poses(Y, ps)
         self.frame_poses = (R, d, (ps.parent is not None, ps.child is not None))  # a refit below replaces it
-        gate_var = self._gate_var()
+        gate_var = self._limits.var(self._clock.arrivals, pose, self)
         if gate_var is None and self.gate > 0.0:  # no level yet (fixed templates): the segments' own, to start from
             for k, vs in enumerate((ps.parent, ps.child)):
                 if vs is not None:
                     pose.tracker(k).add_level(float(ss[k]), vs.dof, frame_no)
         if gate_var is not None:
             verdict = pose.judge(ps, R, d, ss, frame_no, refit)
-            if verdict is not None:
-                # (fixed templates: a pose stream's virtual markers, whose labels cannot swap)
-                markers = (self._templates_arg[0] is None, self._templates_arg[1] is None)
-                fix = None if relabelled or refit[0] or refit[1] else pose.relabel(missing, ps, verdict, markers)
-                if fix is not None:  # a swap put right: the frame judged again with all its markers
-                    if self.gate_log is not None:
-                        self.gate_log.extend((frame_no, k, np.nan if stamp is None else stamp) for k in fix[1])
-                    return self._add(fix[0], stamp, frame_no, (ps.parent is None, ps.child is None), relabelled=True)
-                gated = self._gated(missing, ps, verdict, frame_no, stamp)
-                again = (refit[0] or verdict.failed[0], refit[1] or verdict.failed[1])
-                out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None), again)
-                pose.after_refit(ps, verdict, frame_no, refit)
-                return out
+            if verdict is not None:  # labels put right or markers held out, and the frame judged again
+                return after_failure(self, missing, ps, verdict, stamp, frame_no, refit, relabelled)
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
             if self._joint_fails(R, d, frame_no, stamp):
                 self._stats.chained = False
