@@ -5,58 +5,51 @@ child markers; establishes each segment's template from its first fully
 visible frames; fits both poses; keeps the sufficient statistics of the
 relative poses over a sliding window (:mod:`jointfit_core.stats`); and
 returns, for every frame, the joint's world position (or axis) carried by the
-current parent pose, with its covariance. :meth:`OnlineJoint.estimate`
-solves the closed forms (:func:`~jointfit_core.segments.centre_from_pose_sums`,
-:func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`) from the sums and
-widens their covariances by the frame-to-frame correlation of the joint
-residual (:mod:`jointfit_core.serial`). Its block path (:meth:`OnlineJoint.update_many`)
-is :mod:`jointfit_core.joint_blocks`, its calibration file (:meth:`OnlineJoint.to_dict`,
-:meth:`OnlineJoint.from_dict`) :mod:`jointfit_core.joint_file`, its constructor's checks
-(and the virtual markers of a pose stream, :func:`virtual_markers_template`)
-:mod:`jointfit_core.joint_args`, its outlier gate's limits and what follows a
-failing segment :mod:`jointfit_core.joint_outliers`, and its frame numbers and
-stamps a :class:`~jointfit_core.frame_clock.FrameClock`.
+current parent pose, with its covariance. This module holds its frame path:
+the joint's segments and templates, the frames' intake (checked, numbered and
+stamped by a :class:`~jointfit_core.frame_clock.FrameClock`; the frames kept
+while the templates are built), the per-frame step (posing, the outlier gate,
+the joint test, the window, the output) and the counters of what was dropped.
+The rest is in the modules around it:
+
+* its base, :class:`~jointfit_core.joint_estimate.JointEstimate`: the window
+  and the estimate solved from it (:meth:`OnlineJoint.estimate`: the closed
+  forms :func:`~jointfit_core.segments.centre_from_pose_sums` and
+  :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` on the sums,
+  their covariances widened by the frame-to-frame correlation of the joint
+  residual, :mod:`jointfit_core.serial`; solve requests and installs; freeze
+  and thaw);
+* the constructor's checks and the virtual markers of a pose stream:
+  :mod:`jointfit_core.joint_args`; the outlier gate's limits and what follows
+  a failing segment: :mod:`jointfit_core.joint_outliers`;
+* its block path (:meth:`OnlineJoint.update_many`):
+  :mod:`jointfit_core.joint_blocks`; its calibration file
+  (:meth:`OnlineJoint.to_dict`, :meth:`OnlineJoint.from_dict`):
+  :mod:`jointfit_core.joint_file`.
 """
 
 from __future__ import annotations
 
-import itertools
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import joint_blocks, joint_file
-from .checks import check_frame, check_vector3
+from .checks import check_frame
 from .errors import InputError
 from .frame_clock import FrameClock
-from .hinge_from_sums import PoseSumsAxis
 from .joint_args import check_settings, virtual_markers_template
+from .joint_estimate import JointEstimate
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
 from .joint_outliers import GateLimits, after_failure
-from .joint_sums import RelativePoseSums
 from .joint_world import JointOutput, WorldOutput
 from .lever import lever_ratios
 from .pose import MIN_POSE_MARKERS
 from .segment_pair import SegmentPair, poses
-from .segments import (
-    PoseSums,
-    PoseSumsCentre,
-)
-from .serial import (
-    LagSums,
-    SerialInflation,
-    TimeLagSums,
-)
-from .stats import WindowSpec
-from .window_solve import (
-    SKIN_MIN_MOVEMENT_S,
-    SolveRequest,
-    SolveResult,
-    solve_window,
-    unpack_pose_sums,
-)
+from .segments import PoseSumsCentre
+from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
     "OnlineJoint",
@@ -72,14 +65,8 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-# --------------------------------------------------------------------------- solving a window
 
-#: Estimator states whose solve results may be installed, numbered across all estimators of the process
-#: (a runner replaces its estimator on reset: an answer for the old one must not fit the new one).
-_GENERATIONS = itertools.count(1)
-
-
-class OnlineJoint:
+class OnlineJoint(JointEstimate):
     """Ball joint or hinge between two moving segments, online, O(1) per frame.
 
     Parameters
@@ -162,62 +149,9 @@ class OnlineJoint:
     (``sum SS / sum (3 n_vis - 6)``, not corrected for the template's own
     degrees of freedom, which is negligible after a few dozen frames).
 
-    **Estimate.** :meth:`estimate` is
-    :func:`~jointfit_core.segments.centre_from_pose_sums` (ball; Stoddart eq.
-    9 with bias compensation and sandwich covariance) or
-    :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` (hinge) on the
-    window's sums, with the mean local pose covariances times the current
-    noise variances: identical to those functions on the window's frames.
-    On rigid markers the weighted (Gauss-Markov) batch fit is about 25 % more
-    precise but needs every frame; on skin markers a batch hinge reports the
-    same closed form as this (the refinement is less accurate under soft-tissue
-    artefact, :func:`~jointfit_core.segments.fit_axis_two_segments`).
-
-    **Serial correlation** (``serial_correlation=True``). Those covariances
-    treat the frames as independent. Soft-tissue artefact moves markers
-    smoothly, so the constraint residual ``r_k = c_p - Q_k c_c - t_k`` is
-    correlated in time (lag-1 autocorrelation 0.95-0.998 on skin markers at
-    100 Hz; the real hip's falls to 0.45 at 0.32 s and to 0 at 0.64 s) and
-    N frames carry the information of about ``N / F`` independent ones, ``F =
-    1 + 2 sum_l (1 - l dt / T) rho(l dt)`` the integrated autocorrelation
-    (Bartlett, ``T`` = :data:`~jointfit_core.serial.SERIAL_WINDOW_S`). The
-    window therefore also keeps, per frame k, the products of its relative
-    pose with that of frame k-1 and with those of the frames
-    :data:`~jointfit_core.serial.SERIAL_LAGS_S` seconds earlier
-    (:mod:`jointfit_core.serial`, :class:`~jointfit_core.serial.LagHistory`:
-    pairs found from the stamps, frames without stamps counted at
-    :data:`~jointfit_core.serial.NOMINAL_RATE_HZ`), from which
-    ``rho(lag) = (sum_pairs r_k . r_j / n_pairs) / (sum_frames |r_k|^2 / n)``
-    at the estimate (ball: the centres; hinge: the solved axis-point pair,
-    :func:`~jointfit_core.serial.hinge_residual_pair`), and every covariance
-    of the estimate (ball: ``cov``, ``cov_parent``, ``cov_child``; hinge:
-    directions and points) is multiplied by
-    :func:`~jointfit_core.serial.integrated_factor` of them (summed until the
-    correlation is noise). Reading the correlation in seconds makes ``N dt /
-    F``, the seconds per independent sample, the same at any frame rate; the
-    lag-1 AR(1) factor ``(1 + rho) / (1 - rho)`` that
-    :func:`~jointfit_core.model_error.residual_inflation` applies to the batch
-    fits is not (real hip: 2 effective frames at 100 Hz, 8 at 12.5 Hz; now
-    30 and 29). The batch fits' ``chi2`` factor is not applied: the sandwich's middle is the
-    residual covariance predicted from the pooled pose-fit noise, which on
-    skin markers already grows with the cluster deformation (right hip
-    fixture: ``sum |r|^2 / ((N - 2) tr W) = 1.09``); artefact that moves a
-    cluster rigidly would not show there. When the factor makes an
-    identifiable estimate's standard deviation exceed the verdict's limits
-    (:data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm,
-    :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`), it is flagged as the
-    batch fits flag it. *Lag pairs*: the pair ``(k-1, k)`` is stored with
-    frame k, and only when frame k-1 is the frame that entered the
-    statistics just before it, with no frame in between that reached the
-    estimator but could not enter them (a segment not posed, or frozen);
-    frames dropped for a non-increasing stamp do not break the chain. A
-    pair leaves the window (or decays) with frame k, so the oldest frame of
-    a window still carries its pair with the frame before it: the window's
-    sums are the batch sums of its frames
-    (:func:`~jointfit_core.segments.pose_sums_from_relative`) and of the
-    pairs ending in them (:func:`~jointfit_core.serial.lag_sums_from_relative`
-    over the window and the frame before it). The pairs at lags in seconds are
-    stored with their later frame in the same way.
+    **Estimate** and **serial correlation**: what :meth:`estimate` solves and
+    how its covariances are widened, in the Notes of the base,
+    :class:`~jointfit_core.joint_estimate.JointEstimate`.
 
     **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
     ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise
@@ -259,40 +193,20 @@ class OnlineJoint:
             gate=gate,
             attachment=attachment,
         )
-        self.kind = settings.kind
-        self.spec: WindowSpec = settings.spec
         self.template_frames = settings.template_frames
-        self.reference_direction = settings.reference_direction
         self._templates_arg = settings.templates
-        self._noise_arg = settings.noise_std
         self._n_markers_arg = settings.n_markers
-        self.serial_correlation = settings.serial_correlation
         self.gate = settings.gate
-        #: ``("skin" | "rigid", "skin" | "rigid")``: how the parent's and the child's markers are attached.
-        self.attachment = settings.attachment
-        self._skin = "skin" in self.attachment
-        self._moments = self._skin and self.kind == "hinge"
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
         self.gate_log: list[tuple[int, int, float]] | None = None
-        self.reset()
-
-    # ------------------------------------------------------------------ state
+        super().__init__(settings)  # (which calls reset)
 
     def reset(self) -> None:
         """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
+        super().reset()
         self.n_markers: tuple[int, int] | None = self._n_markers_arg
-        self._stats = RelativePoseSums(self.spec, self._skin, self._moments)
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
-        self._solution: PoseSumsCentre | PoseSumsAxis | None = None
-        self._sigma = (0.0, 0.0)
-        # Data changes since the start (frames entered; hinge sign convention) and the change the
-        # solution was solved at: the solution is stale while they differ. A reset (and a new sign
-        # convention) starts a new generation, whose solve results alone may be installed.
-        self._version = 0
-        self._solved_version = 0
-        self._generation = next(_GENERATIONS)
-        self._frozen = False
         self.dropped: dict[str, int] = {}
         self.n_frames_seen = 0
         #: The latest :meth:`update` frame's segment poses, after the gate: ``(R (2, 3, 3), d (2, 3),
@@ -301,11 +215,6 @@ class OnlineJoint:
         #: the frame came in a block). The skeleton's segment outputs read it
         #: (:mod:`jointfit_core.segment_frames`).
         self.frame_poses: tuple[FloatArray, FloatArray, tuple[bool, bool]] | None = None
-        self._serial: SerialInflation | None = None
-        self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
-        self._artefact_scale = 0.0
-        self._white_sigma: tuple[float, float] | None = None
-        self._matched: FloatArray | None = None  # hinge: point_child_matched (joint_file.matched_child_point)
         # Frames are numbered as they arrive, and their stamps checked (FrameClock; the clock of the outlier
         # gate's turn test and of its limits' refresh). The gate's limits are cached (GateLimits); each
         # segment's memory is in its tracker.
@@ -326,10 +235,7 @@ class OnlineJoint:
             if tc is not None:
                 self._pose.child.set_template(tc)
 
-    @property
-    def frozen(self) -> bool:
-        """Whether the estimate is frozen (per-frame outputs continue, statistics do not)."""
-        return self._frozen
+    # ------------------------------------------------------------------ the segments and their templates
 
     @property
     def templates_ready(self) -> bool:
@@ -345,22 +251,19 @@ class OnlineJoint:
         )
 
     @property
-    def statistics(self) -> RelativePoseSums:
-        """The joint's window of relative-pose sums (:class:`~jointfit_core.joint_sums.RelativePoseSums`)."""
-        return self._stats
-
-    @property
-    def n_window(self) -> int:
-        """Frames in the window (frames added, under forgetting)."""
-        return 0 if self._stats.window is None else self._stats.window.n_window
-
-    @property
     def length_scale(self) -> float:
         """The larger rms radius of the two templates (input units; 0 until they exist)."""
         if not self.templates_ready:
             return 0.0
         assert self._pose is not None
         return max(self._pose.parent.rms_radius, self._pose.child.rms_radius)
+
+    def _radii(self) -> tuple[float, float]:
+        """The rms radii of the parent's and the child's templates (input units; (0, 0) until both exist)."""
+        if not self.templates_ready:
+            return (0.0, 0.0)
+        assert self._pose is not None
+        return (self._pose.parent.rms_radius, self._pose.child.rms_radius)
 
     @property
     def gated_frames(self) -> tuple[int, int]:
@@ -378,16 +281,6 @@ class OnlineJoint:
         return (self._pose.parent.relabelled_frames, self._pose.child.relabelled_frames)
 
     @property
-    def noise_std(self) -> tuple[float, float]:
-        """Marker noise estimates (parent, child) used by the latest estimate, input units.
-
-        The pooled pose-fit residual: on skin markers it holds the clusters' deformation too
-        (the covariance's pose-noise part and the outlier gate use it as such); their white
-        noise alone is :attr:`white_noise_std`.
-        """
-        return self._sigma
-
-    @property
     def lever_ratios(self) -> tuple[float, float] | None:
         """Per segment (parent, child), the joint's distance from its cluster over the cluster's rms radius.
 
@@ -403,21 +296,6 @@ class OnlineJoint:
             return lever_ratios((tp, tc), (sol.centre_parent, sol.centre_child))
         return lever_ratios((tp, tc), (sol.point_parent, sol.point_child), (sol.direction_parent, sol.direction_child))
 
-    @property
-    def white_noise_std(self) -> tuple[float, float] | None:
-        """Skin markers: the white marker noise (parent, child) of the latest estimate, input units.
-
-        Read from the second differences of the pose-fit residuals
-        (:mod:`~jointfit_core.white_noise_sums`); what a ball joint's bias compensation used.
-        None for rigid markers and before an estimate.
-        """
-        return self._white_sigma
-
-    @property
-    def solution(self) -> PoseSumsCentre | PoseSumsAxis | None:
-        """The latest estimate, without solving again (None before the first)."""
-        return self._solution
-
     def status(self) -> str:
         """What the estimator is waiting for, in words (empty when estimating)."""
         if self._pose is None:
@@ -429,17 +307,18 @@ class OnlineJoint:
             )
         return ""
 
-    def set_reference_direction(self, direction: ArrayLike) -> None:
-        """Set the hinge sign convention (a direction in the parent local frame); the next estimate follows it."""
-        self.reference_direction = check_vector3(direction, name="reference_direction", unit=True)
-        self._version += 1
-        self._generation = next(_GENERATIONS)  # a solve under way has the old convention
-
     def _make_segments(self, n_parent: int, n_child: int) -> None:
+        """The two segments, of ``n_parent`` and ``n_child`` markers (their templates to build)."""
         self.n_markers = (n_parent, n_child)
         self._pose = SegmentPair(n_parent, n_child, self.template_frames)
 
+    def _installed(self) -> None:
+        """A new estimate: the per-frame outputs' cache is cleared and the joint test armed with it."""
+        self._outputs.clear()
+        self._joint.arm(self._solution, self.length_scale)
+
     def _drop(self, reason: str) -> None:
+        """Count a frame (or part) dropped for ``reason`` in :attr:`dropped`."""
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
 
     # ------------------------------------------------------------------ streaming
@@ -625,224 +504,7 @@ class OnlineJoint:
         self._joint.pass_one(z, frame_no, score, e, self._frozen)
         return False
 
-    # ------------------------------------------------------------------ estimates
-
-    def pose_sums(self) -> tuple[PoseSums, FloatArray, FloatArray, float, float]:
-        """The window's sums: ``(PoseSums, mean unit W_p (6, 6), mean unit W_c (6, 6), sigma_p, sigma_c)``.
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        return unpack_pose_sums(self._entered_sums())
-
-    def lag_sums(self) -> LagSums:
-        """The window's lag-pair sums (:class:`~jointfit_core.serial.LagSums`; see the class Notes).
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        return self._stats.lag_sums(self.status())
-
-    def time_lag_sums(self) -> TimeLagSums:
-        """The window's lag-pair sums at lags in seconds (:class:`~jointfit_core.serial.TimeLagSums`).
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        return self._stats.time_lag_sums(self.status())
-
-    def sums_vector(self) -> FloatArray | None:
-        """A copy of the window's sums vector (the layout :meth:`request_for` takes); None before any frame entered."""
-        window = self._stats.window
-        if window is None or window.sums[0] <= 0.0:
-            return None
-        return window.sums.copy()
-
-    def window_contributions(self) -> tuple[FloatArray, FloatArray] | None:
-        """Each frame's contribution to the window's sums, oldest first, and its stamp.
-
-        Returns
-        -------
-        (ndarray, shape (n, n_sums), ndarray, shape (n,)) or None
-            The rows sum to :meth:`sums_vector`; stamps in seconds (NaN when
-            not stamped). None for exponential forgetting (which keeps no
-            frames) and before any frame entered.
-        """
-        window = self._stats.window
-        if window is None or window.spec.exponential or window.n_window == 0:
-            return None
-        return window.window_records(), window.window_stamps()
-
-    @property
-    def solved_version(self) -> tuple[int, int]:
-        """``(generation, version)`` of the window the current estimate was solved from (changes with every solve)."""
-        return self._generation, self._solved_version
-
-    def _entered_sums(self) -> FloatArray:
-        """The window's sums vector; InputError when no frame has entered the statistics yet."""
-        return self._stats.entered(self.status())
-
-    @property
-    def movement_seconds(self) -> float:
-        """Seconds of movement in the window (weighted, with forgetting): frames whose relative rotation turned by more than :data:`~jointfit_core.joint_sums.MOVING_DEG` in 0.32 s.
-
-        Skin estimates are identifiable from :data:`SKIN_MIN_MOVEMENT_S` on (see
-        :func:`~jointfit_core.joint_sums.moving_seconds`).
-        """
-        return self._stats.movement_seconds
-
-    @property
-    def serial_inflation(self) -> SerialInflation | None:
-        """The lag-1 correlation of the latest estimate's residual and the factor applied to its covariances.
-
-        None before the first estimate and after :meth:`from_dict` of a
-        calibration saved without it.
-        """
-        return self._serial
-
-    @property
-    def statistical_solution(self) -> PoseSumsCentre | PoseSumsAxis | None:
-        """Skin markers: the latest estimate with its statistical covariances only (without the soft-tissue part).
-
-        None for rigid markers (:meth:`estimate`'s covariances are then the
-        statistical ones), before the first estimate and after :meth:`from_dict`.
-        """
-        return self._statistical
-
-    @property
-    def artefact_scale(self) -> float:
-        """The soft-tissue prior's scale at the latest estimate (input units per radian; 0 for rigid markers)."""
-        return self._artefact_scale
-
-    def estimate(self) -> PoseSumsCentre | PoseSumsAxis:
-        """Solve the window's sums (or return the frozen or still current estimate).
-
-        Returns
-        -------
-        PoseSumsCentre or PoseSumsAxis
-            For ``kind`` "ball" and "hinge"; local frames are the templates'.
-            Covariances include the serial-correlation factor
-            (:attr:`serial_inflation`; see the class Notes).
-
-        Raises
-        ------
-        InputError
-            Fewer than 3 frames in the statistics.
-        NotIdentifiableError
-            The window's motion cannot determine the joint at all.
-
-        Notes
-        -----
-        ``install(solve_window(solve_request()))``: the same steps as a solve in
-        another process (:meth:`solve_request`, :func:`solve_window`, :meth:`install`).
-        """
-        request = self.solve_request()
-        if request is not None:
-            self._install(solve_window(request))
-        assert self._solution is not None
-        return self._solution
-
-    def solve_request(self) -> SolveRequest | None:
-        """A snapshot of the window for :func:`solve_window`; None when the estimate is current.
-
-        The estimate is current when frozen, or when no frame has entered the
-        statistics since it was solved. The request holds copies, so the
-        estimator takes further frames while it is solved elsewhere.
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        if self._solution is not None and (self._frozen or self._version == self._solved_version):
-            return None
-        return self.request_for(self._entered_sums().copy())
-
-    def request_for(self, sums: FloatArray) -> SolveRequest:
-        """A :class:`SolveRequest` of this estimator's settings for other sums (e.g. one block of the window).
-
-        Parameters
-        ----------
-        sums : ndarray, shape (n_sums,)
-            A sums vector in the estimator's layout: a sum of rows of
-            :meth:`window_contributions`, or a difference of :meth:`sums_vector`
-            snapshots of a window that forgets nothing.
-        """
-        return SolveRequest(
-            kind=self.kind,
-            sums=np.asarray(sums, dtype=np.float64),
-            noise_std=self._noise_arg,
-            length_scale=self.length_scale,
-            reference_direction=self.reference_direction,
-            serial_correlation=self.serial_correlation,
-            generation=self._generation,
-            version=self._version,
-            attachment=self.attachment,
-            radii=self._radii(),
-        )
-
-    def _radii(self) -> tuple[float, float]:
-        if not self.templates_ready:
-            return (0.0, 0.0)
-        assert self._pose is not None
-        return (self._pose.parent.rms_radius, self._pose.child.rms_radius)
-
-    def is_current(self, request: SolveRequest) -> bool:
-        """Whether a :meth:`solve_request` was made in the state the estimator is in now.
-
-        False after a reset, a freeze or a new hinge sign convention: the answer
-        to it, a result or an error, is about a window that is gone.
-        """
-        return request.generation == self._generation and not self._frozen
-
-    def install(self, result: SolveResult) -> bool:
-        """Make a :func:`solve_window` result of an earlier :meth:`solve_request` the estimate.
-
-        Returns False (and changes nothing) when the result is stale: the
-        estimator was reset or frozen since the request, its hinge sign
-        convention changed, or the estimate is already as recent.
-        """
-        if result.generation != self._generation or self._frozen:
-            return False
-        if self._solution is not None and result.version <= self._solved_version:
-            return False
-        self._install(result)
-        return True
-
-    def _install(self, result: SolveResult) -> None:
-        self._solution = result.solution
-        self._sigma = result.noise_std
-        self._serial = result.serial
-        self._statistical = result.statistical
-        self._artefact_scale = result.artefact_scale
-        self._white_sigma = result.white_noise_std
-        self._solved_version = result.version
-        self._outputs.clear()
-        self._joint.arm(self._solution, self.length_scale)
-
     # ------------------------------------------------------------------ calibration
-
-    def freeze(self) -> PoseSumsCentre | PoseSumsAxis:
-        """Fix the current estimate; per-frame outputs continue, the statistics stop.
-
-        Raises
-        ------
-        InputError, NotIdentifiableError
-            No estimate can be made yet.
-        """
-        sol = self.estimate()
-        self._frozen = True
-        return sol
-
-    def thaw(self) -> None:
-        """Resume updating the statistics (the window holds the frames from before freezing)."""
-        self._frozen = False
 
     def to_dict(self) -> dict[str, Any]:
         """The calibration as plain YAML-able types: settings, templates, noise and estimate (:mod:`jointfit_core.joint_file`).

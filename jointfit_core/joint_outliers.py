@@ -29,6 +29,7 @@ from .segment_tracker import GATE_REFRESH_FRAMES
 
 if TYPE_CHECKING:
     from .estimator import OnlineJoint
+    from .joint_estimate import JointEstimate
     from .joint_world import JointOutput
     from .segment_pair import GateVerdict, PairSet, SegmentPair
 
@@ -60,7 +61,7 @@ class GateLimits:
         self._key: tuple[float, int] | None = None
         self._var: FloatArray | None = None
 
-    def var(self, arrivals: int, pair: SegmentPair, estimate: OnlineJoint) -> FloatArray | None:
+    def var(self, arrivals: int, pair: SegmentPair, estimate: JointEstimate) -> FloatArray | None:
         """Per segment (2,), ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
 
         ``sigma``: :meth:`sigma`. None while the gate is off or there is no noise level
@@ -80,7 +81,7 @@ class GateLimits:
             Frames that have arrived at the joint so far (the refresh clock).
         pair : SegmentPair
             The joint's two segments (their levels are read, their limits set).
-        estimate : OnlineJoint
+        estimate : JointEstimate
             The joint: its latest estimate's noise is the last fallback of :meth:`sigma`.
 
         Returns
@@ -104,7 +105,7 @@ class GateLimits:
                     seg.set_limits(float(var), seg.shape.normal_jump(float(sk), float(fk)), self.gate)
         return self._var
 
-    def sigma(self, pair: SegmentPair, estimate: OnlineJoint) -> FloatArray:
+    def sigma(self, pair: SegmentPair, estimate: JointEstimate) -> FloatArray:
         """Per segment (2,), the residual level the gate's residual test holds (input units).
 
         Each segment's own pooled pose-fit residual
