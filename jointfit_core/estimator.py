@@ -6,15 +6,17 @@ visible frames; fits both poses; keeps the sufficient statistics of the
 relative poses over a sliding window (:mod:`jointfit_core.stats`); and
 returns, for every frame, the joint's world position (or axis) carried by the
 current parent pose, with its covariance. This module holds its frame path:
-the joint's segments and templates, the frames' intake (checked, numbered and
-stamped by a :class:`~jointfit_core.frame_clock.FrameClock`; the frames kept
-while the templates are built), the per-frame step (posing, the outlier gate,
-the joint test, the window, the output) and the counters of what was dropped.
-The rest is in the modules around it:
+the frames' intake (checked, numbered and stamped by a
+:class:`~jointfit_core.frame_clock.FrameClock`; the frames kept while the
+templates are built), the per-frame step (posing, the outlier gate, the joint
+test, the window, the output) and the counters of what was dropped. The rest
+is in the modules around it:
 
-* its base, :class:`~jointfit_core.joint_estimate.JointEstimate`: the window
-  and the estimate solved from it (:meth:`OnlineJoint.estimate`: the closed
-  forms :func:`~jointfit_core.segments.centre_from_pose_sums` and
+* its layers below: :class:`~jointfit_core.joint_segments.JointSegments`, the
+  two segments with their templates and sizes, on
+  :class:`~jointfit_core.joint_estimate.JointEstimate`, the window and the
+  estimate solved from it (:meth:`OnlineJoint.estimate`: the closed forms
+  :func:`~jointfit_core.segments.centre_from_pose_sums` and
   :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` on the sums,
   their covariances widened by the frame-to-frame correlation of the joint
   residual, :mod:`jointfit_core.serial`; solve requests and installs; freeze
@@ -40,15 +42,13 @@ from .checks import check_frame
 from .errors import InputError
 from .frame_clock import FrameClock
 from .joint_args import check_settings, virtual_markers_template
-from .joint_estimate import JointEstimate
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
 from .joint_outliers import GateLimits, after_failure
+from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
-from .lever import lever_ratios
 from .pose import MIN_POSE_MARKERS
-from .segment_pair import SegmentPair, poses
-from .segments import PoseSumsCentre
+from .segment_pair import poses
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
@@ -66,7 +66,7 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
-class OnlineJoint(JointEstimate):
+class OnlineJoint(JointSegments):
     """Ball joint or hinge between two moving segments, online, O(1) per frame.
 
     Parameters
@@ -193,9 +193,6 @@ class OnlineJoint(JointEstimate):
             gate=gate,
             attachment=attachment,
         )
-        self.template_frames = settings.template_frames
-        self._templates_arg = settings.templates
-        self._n_markers_arg = settings.n_markers
         self.gate = settings.gate
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
@@ -205,7 +202,6 @@ class OnlineJoint(JointEstimate):
     def reset(self) -> None:
         """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
         super().reset()
-        self.n_markers: tuple[int, int] | None = self._n_markers_arg
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
         self.dropped: dict[str, int] = {}
         self.n_frames_seen = 0
@@ -223,94 +219,7 @@ class OnlineJoint(JointEstimate):
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
         self.joint_gated_frames = 0
-        self._pose: SegmentPair | None = None  # the two segments, from the first frame (or fixed templates)
         self._outputs = WorldOutput(self.kind)
-        tp, tc = self._templates_arg
-        if tp is not None or tc is not None:
-            assert self.n_markers is not None
-            self._make_segments(*self.n_markers)
-            assert self._pose is not None
-            if tp is not None:
-                self._pose.parent.set_template(tp)
-            if tc is not None:
-                self._pose.child.set_template(tc)
-
-    # ------------------------------------------------------------------ the segments and their templates
-
-    @property
-    def templates_ready(self) -> bool:
-        """Whether both templates are established."""
-        return self._pose is not None and self._pose.parent.template is not None and self._pose.child.template is not None
-
-    @property
-    def templates(self) -> tuple[FloatArray | None, FloatArray | None]:
-        """The parent and child templates (local frames, input units), None until established."""
-        return (
-            None if self._pose is None else self._pose.parent.template,
-            None if self._pose is None else self._pose.child.template,
-        )
-
-    @property
-    def length_scale(self) -> float:
-        """The larger rms radius of the two templates (input units; 0 until they exist)."""
-        if not self.templates_ready:
-            return 0.0
-        assert self._pose is not None
-        return max(self._pose.parent.rms_radius, self._pose.child.rms_radius)
-
-    def _radii(self) -> tuple[float, float]:
-        """The rms radii of the parent's and the child's templates (input units; (0, 0) until both exist)."""
-        if not self.templates_ready:
-            return (0.0, 0.0)
-        assert self._pose is not None
-        return (self._pose.parent.rms_radius, self._pose.child.rms_radius)
-
-    @property
-    def gated_frames(self) -> tuple[int, int]:
-        """Frames in which the parent and the child failed the outlier gate (held out whole or in part)."""
-        return (
-            0 if self._pose is None else self._pose.parent.gated_frames,
-            0 if self._pose is None else self._pose.child.gated_frames,
-        )
-
-    @property
-    def relabelled_frames(self) -> tuple[int, int]:
-        """Frames in which the parent's and the child's labels were found swapped and put right (not held out)."""
-        if self._pose is None:
-            return (0, 0)
-        return (self._pose.parent.relabelled_frames, self._pose.child.relabelled_frames)
-
-    @property
-    def lever_ratios(self) -> tuple[float, float] | None:
-        """Per segment (parent, child), the joint's distance from its cluster over the cluster's rms radius.
-
-        :func:`~jointfit_core.lever.lever_ratios` of the latest estimate (ball: the centre; hinge:
-        the axis line) with the templates; None before an estimate. The soft-tissue bias no
-        residual reveals grows with it (:mod:`jointfit_core.lever`).
-        """
-        sol = self._solution
-        tp, tc = self.templates
-        if sol is None or tp is None or tc is None:
-            return None
-        if isinstance(sol, PoseSumsCentre):
-            return lever_ratios((tp, tc), (sol.centre_parent, sol.centre_child))
-        return lever_ratios((tp, tc), (sol.point_parent, sol.point_child), (sol.direction_parent, sol.direction_child))
-
-    def status(self) -> str:
-        """What the estimator is waiting for, in words (empty when estimating)."""
-        if self._pose is None:
-            return "waiting for the first frame"
-        if not self.templates_ready:
-            return (
-                f"building templates from fully visible frames: parent {self._pose.parent.template_progress}/"
-                f"{self.template_frames}, child {self._pose.child.template_progress}/{self.template_frames}"
-            )
-        return ""
-
-    def _make_segments(self, n_parent: int, n_child: int) -> None:
-        """The two segments, of ``n_parent`` and ``n_child`` markers (their templates to build)."""
-        self.n_markers = (n_parent, n_child)
-        self._pose = SegmentPair(n_parent, n_child, self.template_frames)
 
     def _installed(self) -> None:
         """A new estimate: the per-frame outputs' cache is cleared and the joint test armed with it."""

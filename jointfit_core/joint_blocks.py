@@ -18,9 +18,11 @@ gate might fail (a superset) go one by one through the joint's own per-frame
 step (``OnlineJoint._add``) between bulk pushes of the frames around them
 (:func:`_gated_block`).
 
-The functions take the joint and read and write its state (frame numbers,
-stamps, counters, the sums' version); what the block and the frame paths
-share (the gate's limits, the per-frame step) stays the joint's.
+The functions take the joint and read and write its state (its
+:class:`~jointfit_core.frame_clock.FrameClock`'s frame numbers and stamps,
+counters, the sums' version); what the block and the frame paths share (the
+clock, the gate's limits, :class:`~jointfit_core.joint_outliers.GateLimits`,
+the per-frame step) stays the joint's.
 """
 
 from __future__ import annotations

@@ -7,10 +7,11 @@ latest estimate with what came with it (noise, serial-correlation factor,
 statistical part, artefact scale), the versions that tell a stale estimate and
 a stale solve result (:meth:`~JointEstimate.solve_request`,
 :meth:`~JointEstimate.install`, :func:`~jointfit_core.window_solve.solve_window`
-in this or another process), and the frozen state. ``OnlineJoint`` is the
-subclass that feeds the window from markers, frame after frame; it supplies the
-templates' sizes (:meth:`~JointEstimate._radii`), its status in words
-(:meth:`~JointEstimate.status`) and what follows an install
+in this or another process), and the frozen state. It is the root of
+``OnlineJoint``'s layers: :class:`~jointfit_core.joint_segments.JointSegments`
+supplies the templates' sizes (:meth:`~JointEstimate._radii`) and the status in
+words (:meth:`~JointEstimate.status`), ``OnlineJoint``, which feeds the window
+from markers frame after frame, what follows an install
 (:meth:`~JointEstimate._installed`).
 """
 
@@ -42,8 +43,9 @@ _GENERATIONS = itertools.count(1)
 class JointEstimate:
     """A joint's window of relative-pose sums and its estimate: solve requests, installs, freeze and thaw.
 
-    The base of :class:`~jointfit_core.estimator.OnlineJoint`, whose frames
-    feed the window.
+    The root of :class:`~jointfit_core.estimator.OnlineJoint`, whose frames
+    feed the window (its layers: :class:`~jointfit_core.joint_segments.JointSegments`
+    adds the segments and their templates, ``OnlineJoint`` the frame path).
 
     Parameters
     ----------
