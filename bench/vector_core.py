@@ -92,10 +92,10 @@ from _common import machine, markdown_table, save_results
 from skeleton import SOLVE_EVERY, T0, WARM, _commit, _Path  # type: ignore[attr-defined]
 
 from jointfit_core.artefact_sums import N_FEATURE_SUMS
-from jointfit_core.estimator import GATE_REFRESH_FRAMES, GATE_SIGMA_FLOOR
 from jointfit_core.gate import GATE_HISTORY_FRAMES, GATE_JUMP_GAP_CAP, GATE_JUMP_LOW, GATE_JUMP_MADS, _aligned
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.joint_gate import JointResidual
+from jointfit_core.joint_outliers import GATE_SIGMA_FLOOR
 from jointfit_core.joint_sums import (
     _FM,
     _FS,
@@ -116,6 +116,7 @@ from jointfit_core.segment_pair import _eigh
 from jointfit_core.segment_tracker import (
     _LEVEL_DECAY,
     COS_MAX_TURN,
+    GATE_REFRESH_FRAMES,
     GATE_RELOCK_FRAMES,
     GATE_TURN_GAP_FRAMES,
     SegmentTracker,
@@ -236,7 +237,7 @@ class VectorSkeleton:
         self.trackers: list[SegmentTracker] = [self._tracker(j, s) for j, s in units]
         self._init_units()
         self._init_joints()
-        self.frame_no = self.est[0]._arrivals
+        self.frame_no = self.est[0]._clock.arrivals
         self.gate_block = -1
         self.flags = {"gate_slow": 0, "joint_slow": 0, "absurd_slow": 0, "aligned": 0, "jump_last": 0}
         self.last: dict[str, Any] = {}
@@ -491,7 +492,7 @@ class VectorSkeleton:
     def _refresh_limits(self) -> None:
         """The gate's limits of the units of the joints due (per ``GATE_REFRESH_FRAMES`` frames and after an estimate).
 
-        ``OnlineJoint._gate_var``: the residual level ``(gate s)^2`` from the window's pooled pose-fit
+        ``GateLimits.var``: the residual level ``(gate s)^2`` from the window's pooled pose-fit
         residual, the jump limits from the recent jumps' median and MAD (all units at once; the due
         ones take them).
         """

@@ -5,54 +5,51 @@ child markers; establishes each segment's template from its first fully
 visible frames; fits both poses; keeps the sufficient statistics of the
 relative poses over a sliding window (:mod:`jointfit_core.stats`); and
 returns, for every frame, the joint's world position (or axis) carried by the
-current parent pose, with its covariance. :meth:`OnlineJoint.estimate`
-solves the closed forms (:func:`~jointfit_core.segments.centre_from_pose_sums`,
-:func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums`) from the sums and
-widens their covariances by the frame-to-frame correlation of the joint
-residual (:mod:`jointfit_core.serial`). Its block path (:meth:`OnlineJoint.update_many`)
-is :mod:`jointfit_core.joint_blocks`, its calibration file (:meth:`OnlineJoint.to_dict`,
-:meth:`OnlineJoint.from_dict`) :mod:`jointfit_core.joint_file`.
+current parent pose, with its covariance. This module holds its frame path:
+the frames' intake (checked, numbered and stamped by a
+:class:`~jointfit_core.frame_clock.FrameClock`; the frames kept while the
+templates are built), the per-frame step (posing, the outlier gate, the joint
+test, the window, the output) and the counters of what was dropped. The rest
+is in the modules around it:
+
+* its layers below: :class:`~jointfit_core.joint_segments.JointSegments`, the
+  two segments with their templates and sizes, on
+  :class:`~jointfit_core.joint_estimate.JointEstimate`, the window and the
+  estimate solved from it (:meth:`OnlineJoint.estimate`: the closed forms
+  :func:`~jointfit_core.segments.centre_from_pose_sums` and
+  :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` on the sums,
+  their covariances widened by the frame-to-frame correlation of the joint
+  residual, :mod:`jointfit_core.serial`; solve requests and installs; freeze
+  and thaw);
+* the constructor's checks and the virtual markers of a pose stream:
+  :mod:`jointfit_core.joint_args`; the outlier gate's limits and what follows
+  a failing segment: :mod:`jointfit_core.joint_outliers`;
+* its block path (:meth:`OnlineJoint.update_many`):
+  :mod:`jointfit_core.joint_blocks`; its calibration file
+  (:meth:`OnlineJoint.to_dict`, :meth:`OnlineJoint.from_dict`):
+  :mod:`jointfit_core.joint_file`.
 """
 
 from __future__ import annotations
 
-import itertools
-import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import joint_blocks, joint_file
-from .artefact import check_attachment
-from .checks import check_frame, check_vector3
+from .checks import check_frame
 from .errors import InputError
-from .hinge_from_sums import PoseSumsAxis
+from .frame_clock import FrameClock
+from .joint_args import check_settings, virtual_markers_template
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
-from .joint_sums import RelativePoseSums
+from .joint_outliers import GateLimits, after_failure
+from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
-from .lever import lever_ratios
 from .pose import MIN_POSE_MARKERS
-from .segment_pair import GateVerdict, PairSet, SegmentPair, poses
-from .segment_tracker import GATE_REFRESH_FRAMES, shape_ok
-from .segments import (
-    PoseSums,
-    PoseSumsCentre,
-)
-from .serial import (
-    LagSums,
-    SerialInflation,
-    TimeLagSums,
-)
-from .stats import WindowSpec, window_spec
-from .window_solve import (
-    SKIN_MIN_MOVEMENT_S,
-    SolveRequest,
-    SolveResult,
-    solve_window,
-    unpack_pose_sums,
-)
+from .segment_pair import poses
+from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
     "OnlineJoint",
@@ -68,124 +65,8 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-#: Outlier gate: the noise sigma it assumes is at least this fraction of the templates' rms radius
-#: (noise-free or rounding-level data would otherwise fail it in every frame).
-GATE_SIGMA_FLOOR = 1e-6
 
-_KINDS = ("ball", "hinge")
-
-
-def virtual_markers_template(translation_sd: float, rotation_sd: float) -> tuple[FloatArray, float]:
-    """Virtual markers that stand for a rigid-body pose with the given noise.
-
-    A pose stream (e.g. ``geometry_msgs/PoseStamped`` from a mocap rigid
-    body) is turned into four virtual markers ``R x_i + d`` at the vertices
-    of a regular tetrahedron ``x_i``. Fitting them with marker noise
-    ``sigma`` per coordinate gives a pose whose translation has standard
-    deviation ``sigma / 2`` per axis and whose rotation has ``sigma / (L
-    sqrt(8/3))`` radians per axis (``L`` the vertex radius); choosing
-    ``sigma = 2 translation_sd`` and ``L = sigma / (rotation_sd sqrt(8/3))``
-    reproduces the pose noise the user states.
-
-    Parameters
-    ----------
-    translation_sd : float
-        Standard deviation of the pose's position per axis (input units).
-    rotation_sd : float
-        Standard deviation of its orientation per axis (radians).
-
-    Returns
-    -------
-    template : ndarray, shape (4, 3)
-        Vertex coordinates in the body frame (centroid at the origin).
-    noise_std : float
-        The marker noise ``sigma`` to give :class:`OnlineJoint`.
-    """
-    if not (np.isfinite(translation_sd) and translation_sd > 0 and np.isfinite(rotation_sd) and rotation_sd > 0):
-        raise InputError(
-            f"pose noise: expected positive translation and rotation sd, got {translation_sd!r}, {rotation_sd!r}"
-        )
-    sigma = 2.0 * float(translation_sd)
-    radius = sigma / (float(rotation_sd) * np.sqrt(8.0 / 3.0))
-    tetra = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]) / np.sqrt(3.0)
-    return radius * tetra, sigma
-
-
-# --------------------------------------------------------------------------- the constructor's checks
-
-
-def _check_n_markers(n_markers: tuple[int, int] | None) -> tuple[int, int] | None:
-    """:class:`OnlineJoint`'s ``n_markers`` checked: two counts of at least :data:`~jointfit_core.pose.MIN_POSE_MARKERS`, or None."""
-    if n_markers is None:
-        return None
-    if len(n_markers) != 2 or min(int(n_markers[0]), int(n_markers[1])) < MIN_POSE_MARKERS:
-        raise InputError(f"n_markers: expected two counts >= {MIN_POSE_MARKERS}, got {n_markers!r}")
-    return (int(n_markers[0]), int(n_markers[1]))
-
-
-def _check_templates(
-    templates: tuple[ArrayLike | None, ArrayLike | None] | None, n_markers: tuple[int, int] | None
-) -> tuple[tuple[FloatArray | None, FloatArray | None], tuple[int, int] | None]:
-    """:class:`OnlineJoint`'s fixed ``templates`` checked against ``n_markers`` (checked).
-
-    Returns
-    -------
-    templates : (ndarray or None, ndarray or None)
-        Parent (Pa, 3) and child (Pc, 3) float64 copies, input units (None: to build).
-    n_markers : (int, int) or None
-        ``n_markers``, or the fixed templates' counts when it is None.
-
-    Raises
-    ------
-    InputError
-        Not a pair, a template not (P >= 3, 3), non-finite or collinear, or
-        its count not that of ``n_markers``; one template fixed without ``n_markers``.
-    """
-    fixed: list[FloatArray | None] = [None, None]
-    if templates is not None:
-        if len(templates) != 2:
-            raise InputError("templates: expected a pair (parent, child); None for a template to build")
-        for k, x in enumerate(templates):
-            if x is None:
-                continue
-            arr = np.array(x, dtype=np.float64)
-            if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < MIN_POSE_MARKERS:
-                raise InputError(f"templates: expected arrays of shape (P, 3) with P >= {MIN_POSE_MARKERS}")
-            if not (np.isfinite(arr).all() and shape_ok(arr)):
-                raise InputError("templates: expected finite, non-collinear template points")
-            if n_markers is not None and n_markers[k] != arr.shape[0]:
-                raise InputError(f"templates: {arr.shape[0]} points differ from n_markers {n_markers}")
-            fixed[k] = arr
-        if any(x is not None for x in fixed) and n_markers is None:
-            if fixed[0] is None or fixed[1] is None:
-                raise InputError("templates: with one template fixed, give n_markers for both segments")
-            n_markers = (fixed[0].shape[0], fixed[1].shape[0])
-    return (fixed[0], fixed[1]), n_markers
-
-
-def _check_noise(noise_std: tuple[float | None, float | None] | None) -> tuple[float | None, float | None]:
-    """:class:`OnlineJoint`'s fixed ``noise_std`` checked: two finite numbers > 0 or None (input units)."""
-    noise: list[float | None] = [None, None]
-    if noise_std is not None:
-        try:
-            for k in range(2):
-                if noise_std[k] is not None:
-                    noise[k] = float(noise_std[k])  # type: ignore[arg-type]
-        except (TypeError, ValueError, IndexError):
-            raise InputError(f"noise_std: expected two numbers > 0 (or None), got {noise_std!r}") from None
-        if any(v is not None and not (np.isfinite(v) and v > 0) for v in noise):
-            raise InputError(f"noise_std: expected finite numbers > 0 (or None), got {noise_std!r}")
-    return (noise[0], noise[1])
-
-
-# --------------------------------------------------------------------------- solving a window
-
-#: Estimator states whose solve results may be installed, numbered across all estimators of the process
-#: (a runner replaces its estimator on reset: an answer for the old one must not fit the new one).
-_GENERATIONS = itertools.count(1)
-
-
-class OnlineJoint:
+class OnlineJoint(JointSegments):
     """Ball joint or hinge between two moving segments, online, O(1) per frame.
 
     Parameters
@@ -233,7 +114,7 @@ class OnlineJoint:
         residual test, rms residual above ``gate`` times the segment's own pooled
         pose-fit residual, while moving more than usual; both limits read
         again every :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames,
-        :meth:`_gate_sigma`) has its labels put right when its markers are
+        :meth:`GateLimits.sigma <jointfit_core.joint_outliers.GateLimits.sigma>`) has its labels put right when its markers are
         its reference's under other labels (a swap,
         :meth:`~jointfit_core.segment_pair.SegmentPair.relabel`,
         :attr:`relabelled_frames`), else loses its worst-fitting marker and is
@@ -241,6 +122,10 @@ class OnlineJoint:
         not posed in that frame. Ghost markers and jumps are dropped before
         they reach the statistics or the per-frame output; smooth skin
         deformation passes (see Notes, :attr:`gated_frames`).
+    attachment : {"rigid", "skin"} or (str, str)
+        How the parent's and the child's markers are attached (one for both,
+        or a pair; :func:`~jointfit_core.artefact.check_attachment`): skin
+        markers add the soft-tissue part to the estimate's covariances.
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -264,62 +149,9 @@ class OnlineJoint:
     (``sum SS / sum (3 n_vis - 6)``, not corrected for the template's own
     degrees of freedom, which is negligible after a few dozen frames).
 
-    **Estimate.** :meth:`estimate` is
-    :func:`~jointfit_core.segments.centre_from_pose_sums` (ball; Stoddart eq.
-    9 with bias compensation and sandwich covariance) or
-    :func:`~jointfit_core.hinge_from_sums.axis_from_pose_sums` (hinge) on the
-    window's sums, with the mean local pose covariances times the current
-    noise variances: identical to those functions on the window's frames.
-    On rigid markers the weighted (Gauss-Markov) batch fit is about 25 % more
-    precise but needs every frame; on skin markers a batch hinge reports the
-    same closed form as this (the refinement is less accurate under soft-tissue
-    artefact, :func:`~jointfit_core.segments.fit_axis_two_segments`).
-
-    **Serial correlation** (``serial_correlation=True``). Those covariances
-    treat the frames as independent. Soft-tissue artefact moves markers
-    smoothly, so the constraint residual ``r_k = c_p - Q_k c_c - t_k`` is
-    correlated in time (lag-1 autocorrelation 0.95-0.998 on skin markers at
-    100 Hz; the real hip's falls to 0.45 at 0.32 s and to 0 at 0.64 s) and
-    N frames carry the information of about ``N / F`` independent ones, ``F =
-    1 + 2 sum_l (1 - l dt / T) rho(l dt)`` the integrated autocorrelation
-    (Bartlett, ``T`` = :data:`~jointfit_core.serial.SERIAL_WINDOW_S`). The
-    window therefore also keeps, per frame k, the products of its relative
-    pose with that of frame k-1 and with those of the frames
-    :data:`~jointfit_core.serial.SERIAL_LAGS_S` seconds earlier
-    (:mod:`jointfit_core.serial`, :class:`~jointfit_core.serial.LagHistory`:
-    pairs found from the stamps, frames without stamps counted at
-    :data:`~jointfit_core.serial.NOMINAL_RATE_HZ`), from which
-    ``rho(lag) = (sum_pairs r_k . r_j / n_pairs) / (sum_frames |r_k|^2 / n)``
-    at the estimate (ball: the centres; hinge: the solved axis-point pair,
-    :func:`~jointfit_core.serial.hinge_residual_pair`), and every covariance
-    of the estimate (ball: ``cov``, ``cov_parent``, ``cov_child``; hinge:
-    directions and points) is multiplied by
-    :func:`~jointfit_core.serial.integrated_factor` of them (summed until the
-    correlation is noise). Reading the correlation in seconds makes ``N dt /
-    F``, the seconds per independent sample, the same at any frame rate; the
-    lag-1 AR(1) factor ``(1 + rho) / (1 - rho)`` that
-    :func:`~jointfit_core.model_error.residual_inflation` applies to the batch
-    fits is not (real hip: 2 effective frames at 100 Hz, 8 at 12.5 Hz; now
-    30 and 29). The batch fits' ``chi2`` factor is not applied: the sandwich's middle is the
-    residual covariance predicted from the pooled pose-fit noise, which on
-    skin markers already grows with the cluster deformation (right hip
-    fixture: ``sum |r|^2 / ((N - 2) tr W) = 1.09``); artefact that moves a
-    cluster rigidly would not show there. When the factor makes an
-    identifiable estimate's standard deviation exceed the verdict's limits
-    (:data:`~jointfit_core.segments.SD_REL_MAX` of the lever arm,
-    :data:`~jointfit_core.segments.AXIS_SD_MAX_DEG`), it is flagged as the
-    batch fits flag it. *Lag pairs*: the pair ``(k-1, k)`` is stored with
-    frame k, and only when frame k-1 is the frame that entered the
-    statistics just before it, with no frame in between that reached the
-    estimator but could not enter them (a segment not posed, or frozen);
-    frames dropped for a non-increasing stamp do not break the chain. A
-    pair leaves the window (or decays) with frame k, so the oldest frame of
-    a window still carries its pair with the frame before it: the window's
-    sums are the batch sums of its frames
-    (:func:`~jointfit_core.segments.pose_sums_from_relative`) and of the
-    pairs ending in them (:func:`~jointfit_core.serial.lag_sums_from_relative`
-    over the window and the frame before it). The pairs at lags in seconds are
-    stored with their later frame in the same way.
+    **Estimate** and **serial correlation**: what :meth:`estimate` solves and
+    how its covariances are widened, in the Notes of the base,
+    :class:`~jointfit_core.joint_estimate.JointEstimate`.
 
     **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
     ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise
@@ -346,55 +178,31 @@ class OnlineJoint:
         gate: float = 5.0,
         attachment: str | tuple[str, str] = "rigid",
     ) -> None:
-        if kind not in _KINDS:
-            raise InputError(f"kind: expected one of {_KINDS}, got {kind!r}")
-        self.kind = kind
-        self.spec: WindowSpec = window_spec(window, window_s=window_s, half_life=half_life, half_life_s=half_life_s)
-        if isinstance(template_frames, bool) or int(template_frames) < 1:
-            raise InputError(f"template_frames: expected a positive integer, got {template_frames!r}")
-        self.template_frames = int(template_frames)
-        self.reference_direction = (
-            None
-            if reference_direction is None
-            else check_vector3(reference_direction, name="reference_direction", unit=True)
+        settings = check_settings(
+            kind,
+            window,
+            window_s=window_s,
+            half_life=half_life,
+            half_life_s=half_life_s,
+            template_frames=template_frames,
+            reference_direction=reference_direction,
+            n_markers=n_markers,
+            templates=templates,
+            noise_std=noise_std,
+            serial_correlation=serial_correlation,
+            gate=gate,
+            attachment=attachment,
         )
-        self._templates_arg, n_markers = _check_templates(templates, _check_n_markers(n_markers))
-        self._noise_arg = _check_noise(noise_std)
-        self._n_markers_arg = n_markers
-        if not isinstance(serial_correlation, (bool, np.bool_)):
-            raise InputError(f"serial_correlation: expected True or False, got {serial_correlation!r}")
-        self.serial_correlation = bool(serial_correlation)
-        if isinstance(gate, bool) or not isinstance(gate, (int, float, np.floating)) or not (
-            np.isfinite(gate) and gate >= 0.0
-        ):
-            raise InputError(f"gate: expected a number >= 0 (0: off), got {gate!r}")
-        self.gate = float(gate)
-        #: ``("skin" | "rigid", "skin" | "rigid")``: how the parent's and the child's markers are attached.
-        self.attachment: tuple[str, str] = check_attachment(attachment)
-        self._skin = "skin" in self.attachment
-        self._moments = self._skin and self.kind == "hinge"
+        self.gate = settings.gate
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
         self.gate_log: list[tuple[int, int, float]] | None = None
-        self.reset()
-
-    # ------------------------------------------------------------------ state
+        super().__init__(settings)  # (which calls reset)
 
     def reset(self) -> None:
         """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
-        self.n_markers: tuple[int, int] | None = self._n_markers_arg
-        self._stats = RelativePoseSums(self.spec, self._skin, self._moments)
+        super().reset()
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
-        self._solution: PoseSumsCentre | PoseSumsAxis | None = None
-        self._sigma = (0.0, 0.0)
-        # Data changes since the start (frames entered; hinge sign convention) and the change the
-        # solution was solved at: the solution is stale while they differ. A reset (and a new sign
-        # convention) starts a new generation, whose solve results alone may be installed.
-        self._version = 0
-        self._solved_version = 0
-        self._generation = next(_GENERATIONS)
-        self._frozen = False
-        self._last_stamp: float | None = None
         self.dropped: dict[str, int] = {}
         self.n_frames_seen = 0
         #: The latest :meth:`update` frame's segment poses, after the gate: ``(R (2, 3, 3), d (2, 3),
@@ -403,145 +211,23 @@ class OnlineJoint:
         #: the frame came in a block). The skeleton's segment outputs read it
         #: (:mod:`jointfit_core.segment_frames`).
         self.frame_poses: tuple[FloatArray, FloatArray, tuple[bool, bool]] | None = None
-        self._serial: SerialInflation | None = None
-        self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
-        self._artefact_scale = 0.0
-        self._white_sigma: tuple[float, float] | None = None
-        self._matched: FloatArray | None = None  # hinge: point_child_matched (joint_file.matched_child_point)
-        # The outlier gate: frames are numbered as they arrive (see _arrive: its turn test's clock);
-        # its limits are cached (_gate_var); each segment's memory is in its tracker.
-        self._arrivals = 0
-        self._gate_key: tuple[float, int] | None = None
-        self._gate_cache: FloatArray | None = None
+        # Frames are numbered as they arrive, and their stamps checked (FrameClock; the clock of the outlier
+        # gate's turn test and of its limits' refresh). The gate's limits are cached (GateLimits); each
+        # segment's memory is in its tracker.
+        self._clock = FrameClock(self.spec)
+        self._limits = GateLimits(self.gate, self._noise_arg)
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
         self.joint_gated_frames = 0
-        self._pose: SegmentPair | None = None  # the two segments, from the first frame (or fixed templates)
         self._outputs = WorldOutput(self.kind)
-        tp, tc = self._templates_arg
-        if tp is not None or tc is not None:
-            assert self.n_markers is not None
-            self._make_segments(*self.n_markers)
-            assert self._pose is not None
-            if tp is not None:
-                self._pose.parent.set_template(tp)
-            if tc is not None:
-                self._pose.child.set_template(tc)
 
-    @property
-    def frozen(self) -> bool:
-        """Whether the estimate is frozen (per-frame outputs continue, statistics do not)."""
-        return self._frozen
-
-    @property
-    def templates_ready(self) -> bool:
-        """Whether both templates are established."""
-        return self._pose is not None and self._pose.parent.template is not None and self._pose.child.template is not None
-
-    @property
-    def templates(self) -> tuple[FloatArray | None, FloatArray | None]:
-        """The parent and child templates (local frames, input units), None until established."""
-        return (
-            None if self._pose is None else self._pose.parent.template,
-            None if self._pose is None else self._pose.child.template,
-        )
-
-    @property
-    def statistics(self) -> RelativePoseSums:
-        """The joint's window of relative-pose sums (:class:`~jointfit_core.joint_sums.RelativePoseSums`)."""
-        return self._stats
-
-    @property
-    def n_window(self) -> int:
-        """Frames in the window (frames added, under forgetting)."""
-        return 0 if self._stats.window is None else self._stats.window.n_window
-
-    @property
-    def length_scale(self) -> float:
-        """The larger rms radius of the two templates (input units; 0 until they exist)."""
-        if not self.templates_ready:
-            return 0.0
-        assert self._pose is not None
-        return max(self._pose.parent.rms_radius, self._pose.child.rms_radius)
-
-    @property
-    def gated_frames(self) -> tuple[int, int]:
-        """Frames in which the parent and the child failed the outlier gate (held out whole or in part)."""
-        return (
-            0 if self._pose is None else self._pose.parent.gated_frames,
-            0 if self._pose is None else self._pose.child.gated_frames,
-        )
-
-    @property
-    def relabelled_frames(self) -> tuple[int, int]:
-        """Frames in which the parent's and the child's labels were found swapped and put right (not held out)."""
-        if self._pose is None:
-            return (0, 0)
-        return (self._pose.parent.relabelled_frames, self._pose.child.relabelled_frames)
-
-    @property
-    def noise_std(self) -> tuple[float, float]:
-        """Marker noise estimates (parent, child) used by the latest estimate, input units.
-
-        The pooled pose-fit residual: on skin markers it holds the clusters' deformation too
-        (the covariance's pose-noise part and the outlier gate use it as such); their white
-        noise alone is :attr:`white_noise_std`.
-        """
-        return self._sigma
-
-    @property
-    def lever_ratios(self) -> tuple[float, float] | None:
-        """Per segment (parent, child), the joint's distance from its cluster over the cluster's rms radius.
-
-        :func:`~jointfit_core.lever.lever_ratios` of the latest estimate (ball: the centre; hinge:
-        the axis line) with the templates; None before an estimate. The soft-tissue bias no
-        residual reveals grows with it (:mod:`jointfit_core.lever`).
-        """
-        sol = self._solution
-        tp, tc = self.templates
-        if sol is None or tp is None or tc is None:
-            return None
-        if isinstance(sol, PoseSumsCentre):
-            return lever_ratios((tp, tc), (sol.centre_parent, sol.centre_child))
-        return lever_ratios((tp, tc), (sol.point_parent, sol.point_child), (sol.direction_parent, sol.direction_child))
-
-    @property
-    def white_noise_std(self) -> tuple[float, float] | None:
-        """Skin markers: the white marker noise (parent, child) of the latest estimate, input units.
-
-        Read from the second differences of the pose-fit residuals
-        (:mod:`~jointfit_core.white_noise_sums`); what a ball joint's bias compensation used.
-        None for rigid markers and before an estimate.
-        """
-        return self._white_sigma
-
-    @property
-    def solution(self) -> PoseSumsCentre | PoseSumsAxis | None:
-        """The latest estimate, without solving again (None before the first)."""
-        return self._solution
-
-    def status(self) -> str:
-        """What the estimator is waiting for, in words (empty when estimating)."""
-        if self._pose is None:
-            return "waiting for the first frame"
-        if not self.templates_ready:
-            return (
-                f"building templates from fully visible frames: parent {self._pose.parent.template_progress}/"
-                f"{self.template_frames}, child {self._pose.child.template_progress}/{self.template_frames}"
-            )
-        return ""
-
-    def set_reference_direction(self, direction: ArrayLike) -> None:
-        """Set the hinge sign convention (a direction in the parent local frame); the next estimate follows it."""
-        self.reference_direction = check_vector3(direction, name="reference_direction", unit=True)
-        self._version += 1
-        self._generation = next(_GENERATIONS)  # a solve under way has the old convention
-
-    def _make_segments(self, n_parent: int, n_child: int) -> None:
-        self.n_markers = (n_parent, n_child)
-        self._pose = SegmentPair(n_parent, n_child, self.template_frames)
+    def _installed(self) -> None:
+        """A new estimate: the per-frame outputs' cache is cleared and the joint test armed with it."""
+        self._outputs.clear()
+        self._joint.arm(self._solution, self.length_scale)
 
     def _drop(self, reason: str) -> None:
+        """Count a frame (or part) dropped for ``reason`` in :attr:`dropped`."""
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
 
     # ------------------------------------------------------------------ streaming
@@ -584,9 +270,9 @@ class OnlineJoint:
             return self._after_fill(stamp)
         yp = check_frame(parent, None if self.n_markers is None else self.n_markers[0], name="parent")
         yc = check_frame(child, None if self.n_markers is None else self.n_markers[1], name="child")
-        number = self._arrive()
-        ok, st = self._accept_stamp(stamp)
+        number, st, ok = self._clock.arrive(stamp)
         if not ok:
+            self._drop("stamp_not_increasing")
             return None
         if self._pose is None:
             if yp.shape[0] < MIN_POSE_MARKERS or yc.shape[0] < MIN_POSE_MARKERS:
@@ -644,111 +330,15 @@ class OnlineJoint:
         """
         joint_blocks.update_many(self, parent, child, stamps)
 
-    def _arrive(self) -> int:
-        """Number a frame that arrived (well-formed, whatever its stamp): the turn test's clock."""
-        self._arrivals += 1
-        return self._arrivals
-
-    def _accept_stamp(self, stamp: float | None) -> tuple[bool, float | None]:
-        """Check a frame's stamp; (False, _) when it does not increase (dropped and counted)."""
-        st = None if stamp is None else float(stamp)
-        if st is not None and not np.isfinite(st):
-            raise InputError(f"stamp: expected a finite number of seconds, got {stamp!r}")
-        if self.spec.needs_stamps and st is None:
-            raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
-        if st is not None and self._last_stamp is not None and st <= self._last_stamp:
-            self._drop("stamp_not_increasing")
-            return False, st
-        if st is not None:
-            self._last_stamp = st
-        return True, st
-
     def _after_fill(self, stamp: float | None) -> JointOutput | None:
         pose = self._pose
         assert pose is not None
-        number = self._arrive()
-        ok, st = self._accept_stamp(stamp)
+        number, st, ok = self._clock.arrive(stamp)
         if not ok:
+            self._drop("stamp_not_increasing")
             return None
         self.n_frames_seen += 1
         return self._add(pose.missing, st, number)
-
-    def _gate_var(self) -> FloatArray | None:
-        """Per segment, ``(gate * sigma)^2``: the largest mean squared residual per degree of freedom accepted.
-
-        ``sigma``: :meth:`_gate_sigma`. None while the gate is off or there is no noise level
-        (fixed templates before any frame posed the segments). Sets the segments'
-        limits with it (:meth:`~jointfit_core.segment_tracker.SegmentTracker.set_limits`:
-        the residual's, and ``gate^2`` times each segment's normal jump,
-        :class:`~jointfit_core.gate.ShapeTrack`). Cached: both are read again every
-        :data:`~jointfit_core.segment_tracker.GATE_REFRESH_FRAMES` frames, counted as they
-        arrive (per-frame cost; the update and block paths then judge alike,
-        :func:`~jointfit_core.joint_blocks.update_many` cutting its blocks there), and not
-        with the joint's estimates: the limits are the segments' own, so that joints sharing a
-        segment judge it alike.
-        """
-        key = (self.gate, self._arrivals // GATE_REFRESH_FRAMES)
-        if key != self._gate_key:
-            self._gate_key = key
-            sigma = self._gate_sigma()
-            if self.gate <= 0.0 or min(sigma) <= 0.0:
-                self._gate_cache = None
-            else:
-                assert self._pose is not None
-                segs = (self._pose.parent, self._pose.child)
-                # noise-free data: sigmas of rounding would gate every frame
-                floor = GATE_SIGMA_FLOOR * np.array([seg.rms_radius for seg in segs])
-                s = np.maximum(sigma, floor)
-                self._gate_cache = np.square(self.gate * s)
-                for seg, sk, var, fk in zip(segs, s, self._gate_cache, floor, strict=True):
-                    seg.set_limits(float(var), seg.shape.normal_jump(float(sk), float(fk)), self.gate)
-        return self._gate_cache
-
-    def _gate_sigma(self) -> FloatArray:
-        """Per segment (2,), the residual level the gate's residual test holds (input units).
-
-        Each segment's own pooled pose-fit residual
-        (:meth:`~jointfit_core.segment_tracker.SegmentTracker.pooled_level`: white noise, plus
-        on skin markers the cluster's deformation, over the frames that posed it, whatever the
-        other segment did); before a segment has any: the noise seen while building its
-        template, else the latest estimate's noise (a calibration loaded). A fixed
-        ``noise_std`` is used as given.
-        """
-        assert self._pose is not None
-        sigma = np.zeros(2)
-        for k, seg in enumerate((self._pose.parent, self._pose.child)):
-            level = seg.pooled_level()
-            if self._noise_arg[k] is not None:
-                sigma[k] = float(self._noise_arg[k])  # type: ignore[arg-type]
-            elif level is not None:
-                sigma[k] = math.sqrt(max(level, 0.0))
-            elif seg.template_sigma > 0.0:
-                sigma[k] = seg.template_sigma
-            elif self._solution is not None:
-                sigma[k] = self._sigma[k]
-        return sigma
-
-    def _gated(
-        self, missing: NDArray[np.bool_], ps: PairSet, verdict: GateVerdict, frame_no: int, stamp: float | None
-    ) -> NDArray[np.bool_]:
-        """The missing-marker mask after the gate (:meth:`~jointfit_core.segment_pair.SegmentPair.hold_out`), counted.
-
-        A failing segment's left-out markers are counted as ``<segment>_gated_markers``; a segment
-        that loses all its markers (not posed) as ``<segment>_gated``; each failing segment's frame
-        goes to :attr:`gate_log`.
-        """
-        pose = self._pose
-        assert pose is not None
-        out, held = pose.hold_out(missing, ps, verdict, frame_no)
-        for k, dropped in held:
-            if self.gate_log is not None:
-                self.gate_log.append((frame_no, k, np.nan if stamp is None else stamp))
-            name = pose.tracker(k).name
-            if dropped is None:
-                self._drop(f"{name}_gated")
-            else:
-                self.dropped[f"{name}_gated_markers"] = self.dropped.get(f"{name}_gated_markers", 0) + dropped
-        return out
 
     def _add(
         self,
@@ -783,26 +373,15 @@ class OnlineJoint:
             Y[missing] = 0.0  # _poses needs zeros where a marker is missing
         R, d, ss = poses(Y, ps)
         self.frame_poses = (R, d, (ps.parent is not None, ps.child is not None))  # a refit below replaces it
-        gate_var = self._gate_var()
+        gate_var = self._limits.var(self._clock.arrivals, pose, self)
         if gate_var is None and self.gate > 0.0:  # no level yet (fixed templates): the segments' own, to start from
             for k, vs in enumerate((ps.parent, ps.child)):
                 if vs is not None:
                     pose.tracker(k).add_level(float(ss[k]), vs.dof, frame_no)
         if gate_var is not None:
             verdict = pose.judge(ps, R, d, ss, frame_no, refit)
-            if verdict is not None:
-                # (fixed templates: a pose stream's virtual markers, whose labels cannot swap)
-                markers = (self._templates_arg[0] is None, self._templates_arg[1] is None)
-                fix = None if relabelled or refit[0] or refit[1] else pose.relabel(missing, ps, verdict, markers)
-                if fix is not None:  # a swap put right: the frame judged again with all its markers
-                    if self.gate_log is not None:
-                        self.gate_log.extend((frame_no, k, np.nan if stamp is None else stamp) for k in fix[1])
-                    return self._add(fix[0], stamp, frame_no, (ps.parent is None, ps.child is None), relabelled=True)
-                gated = self._gated(missing, ps, verdict, frame_no, stamp)
-                again = (refit[0] or verdict.failed[0], refit[1] or verdict.failed[1])
-                out = self._add(gated, stamp, frame_no, (ps.parent is None, ps.child is None), again)
-                pose.after_refit(ps, verdict, frame_no, refit)
-                return out
+            if verdict is not None:  # labels put right or markers held out, and the frame judged again
+                return after_failure(self, missing, ps, verdict, stamp, frame_no, refit, relabelled)
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
             if self._joint_fails(R, d, frame_no, stamp):
                 self._stats.chained = False
@@ -834,224 +413,7 @@ class OnlineJoint:
         self._joint.pass_one(z, frame_no, score, e, self._frozen)
         return False
 
-    # ------------------------------------------------------------------ estimates
-
-    def pose_sums(self) -> tuple[PoseSums, FloatArray, FloatArray, float, float]:
-        """The window's sums: ``(PoseSums, mean unit W_p (6, 6), mean unit W_c (6, 6), sigma_p, sigma_c)``.
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        return unpack_pose_sums(self._entered_sums())
-
-    def lag_sums(self) -> LagSums:
-        """The window's lag-pair sums (:class:`~jointfit_core.serial.LagSums`; see the class Notes).
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        return self._stats.lag_sums(self.status())
-
-    def time_lag_sums(self) -> TimeLagSums:
-        """The window's lag-pair sums at lags in seconds (:class:`~jointfit_core.serial.TimeLagSums`).
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        return self._stats.time_lag_sums(self.status())
-
-    def sums_vector(self) -> FloatArray | None:
-        """A copy of the window's sums vector (the layout :meth:`request_for` takes); None before any frame entered."""
-        window = self._stats.window
-        if window is None or window.sums[0] <= 0.0:
-            return None
-        return window.sums.copy()
-
-    def window_contributions(self) -> tuple[FloatArray, FloatArray] | None:
-        """Each frame's contribution to the window's sums, oldest first, and its stamp.
-
-        Returns
-        -------
-        (ndarray, shape (n, n_sums), ndarray, shape (n,)) or None
-            The rows sum to :meth:`sums_vector`; stamps in seconds (NaN when
-            not stamped). None for exponential forgetting (which keeps no
-            frames) and before any frame entered.
-        """
-        window = self._stats.window
-        if window is None or window.spec.exponential or window.n_window == 0:
-            return None
-        return window.window_records(), window.window_stamps()
-
-    @property
-    def solved_version(self) -> tuple[int, int]:
-        """``(generation, version)`` of the window the current estimate was solved from (changes with every solve)."""
-        return self._generation, self._solved_version
-
-    def _entered_sums(self) -> FloatArray:
-        """The window's sums vector; InputError when no frame has entered the statistics yet."""
-        return self._stats.entered(self.status())
-
-    @property
-    def movement_seconds(self) -> float:
-        """Seconds of movement in the window (weighted, with forgetting): frames whose relative rotation turned by more than :data:`~jointfit_core.joint_sums.MOVING_DEG` in 0.32 s.
-
-        Skin estimates are identifiable from :data:`SKIN_MIN_MOVEMENT_S` on (see
-        :func:`~jointfit_core.joint_sums.moving_seconds`).
-        """
-        return self._stats.movement_seconds
-
-    @property
-    def serial_inflation(self) -> SerialInflation | None:
-        """The lag-1 correlation of the latest estimate's residual and the factor applied to its covariances.
-
-        None before the first estimate and after :meth:`from_dict` of a
-        calibration saved without it.
-        """
-        return self._serial
-
-    @property
-    def statistical_solution(self) -> PoseSumsCentre | PoseSumsAxis | None:
-        """Skin markers: the latest estimate with its statistical covariances only (without the soft-tissue part).
-
-        None for rigid markers (:meth:`estimate`'s covariances are then the
-        statistical ones), before the first estimate and after :meth:`from_dict`.
-        """
-        return self._statistical
-
-    @property
-    def artefact_scale(self) -> float:
-        """The soft-tissue prior's scale at the latest estimate (input units per radian; 0 for rigid markers)."""
-        return self._artefact_scale
-
-    def estimate(self) -> PoseSumsCentre | PoseSumsAxis:
-        """Solve the window's sums (or return the frozen or still current estimate).
-
-        Returns
-        -------
-        PoseSumsCentre or PoseSumsAxis
-            For ``kind`` "ball" and "hinge"; local frames are the templates'.
-            Covariances include the serial-correlation factor
-            (:attr:`serial_inflation`; see the class Notes).
-
-        Raises
-        ------
-        InputError
-            Fewer than 3 frames in the statistics.
-        NotIdentifiableError
-            The window's motion cannot determine the joint at all.
-
-        Notes
-        -----
-        ``install(solve_window(solve_request()))``: the same steps as a solve in
-        another process (:meth:`solve_request`, :func:`solve_window`, :meth:`install`).
-        """
-        request = self.solve_request()
-        if request is not None:
-            self._install(solve_window(request))
-        assert self._solution is not None
-        return self._solution
-
-    def solve_request(self) -> SolveRequest | None:
-        """A snapshot of the window for :func:`solve_window`; None when the estimate is current.
-
-        The estimate is current when frozen, or when no frame has entered the
-        statistics since it was solved. The request holds copies, so the
-        estimator takes further frames while it is solved elsewhere.
-
-        Raises
-        ------
-        InputError
-            No frame has entered the statistics yet.
-        """
-        if self._solution is not None and (self._frozen or self._version == self._solved_version):
-            return None
-        return self.request_for(self._entered_sums().copy())
-
-    def request_for(self, sums: FloatArray) -> SolveRequest:
-        """A :class:`SolveRequest` of this estimator's settings for other sums (e.g. one block of the window).
-
-        Parameters
-        ----------
-        sums : ndarray, shape (n_sums,)
-            A sums vector in the estimator's layout: a sum of rows of
-            :meth:`window_contributions`, or a difference of :meth:`sums_vector`
-            snapshots of a window that forgets nothing.
-        """
-        return SolveRequest(
-            kind=self.kind,
-            sums=np.asarray(sums, dtype=np.float64),
-            noise_std=self._noise_arg,
-            length_scale=self.length_scale,
-            reference_direction=self.reference_direction,
-            serial_correlation=self.serial_correlation,
-            generation=self._generation,
-            version=self._version,
-            attachment=self.attachment,
-            radii=self._radii(),
-        )
-
-    def _radii(self) -> tuple[float, float]:
-        if not self.templates_ready:
-            return (0.0, 0.0)
-        assert self._pose is not None
-        return (self._pose.parent.rms_radius, self._pose.child.rms_radius)
-
-    def is_current(self, request: SolveRequest) -> bool:
-        """Whether a :meth:`solve_request` was made in the state the estimator is in now.
-
-        False after a reset, a freeze or a new hinge sign convention: the answer
-        to it, a result or an error, is about a window that is gone.
-        """
-        return request.generation == self._generation and not self._frozen
-
-    def install(self, result: SolveResult) -> bool:
-        """Make a :func:`solve_window` result of an earlier :meth:`solve_request` the estimate.
-
-        Returns False (and changes nothing) when the result is stale: the
-        estimator was reset or frozen since the request, its hinge sign
-        convention changed, or the estimate is already as recent.
-        """
-        if result.generation != self._generation or self._frozen:
-            return False
-        if self._solution is not None and result.version <= self._solved_version:
-            return False
-        self._install(result)
-        return True
-
-    def _install(self, result: SolveResult) -> None:
-        self._solution = result.solution
-        self._sigma = result.noise_std
-        self._serial = result.serial
-        self._statistical = result.statistical
-        self._artefact_scale = result.artefact_scale
-        self._white_sigma = result.white_noise_std
-        self._solved_version = result.version
-        self._outputs.clear()
-        self._joint.arm(self._solution, self.length_scale)
-
     # ------------------------------------------------------------------ calibration
-
-    def freeze(self) -> PoseSumsCentre | PoseSumsAxis:
-        """Fix the current estimate; per-frame outputs continue, the statistics stop.
-
-        Raises
-        ------
-        InputError, NotIdentifiableError
-            No estimate can be made yet.
-        """
-        sol = self.estimate()
-        self._frozen = True
-        return sol
-
-    def thaw(self) -> None:
-        """Resume updating the statistics (the window holds the frames from before freezing)."""
-        self._frozen = False
 
     def to_dict(self) -> dict[str, Any]:
         """The calibration as plain YAML-able types: settings, templates, noise and estimate (:mod:`jointfit_core.joint_file`).

@@ -18,9 +18,11 @@ gate might fail (a superset) go one by one through the joint's own per-frame
 step (``OnlineJoint._add``) between bulk pushes of the frames around them
 (:func:`_gated_block`).
 
-The functions take the joint and read and write its state (frame numbers,
-stamps, counters, the sums' version); what the block and the frame paths
-share (the gate's limits, the per-frame step) stays the joint's.
+The functions take the joint and read and write its state (its
+:class:`~jointfit_core.frame_clock.FrameClock`'s frame numbers and stamps,
+counters, the sums' version); what the block and the frame paths share (the
+clock, the gate's limits, :class:`~jointfit_core.joint_outliers.GateLimits`,
+the per-frame step) stays the joint's.
 """
 
 from __future__ import annotations
@@ -122,11 +124,11 @@ def _update_many(joint: OnlineJoint, parent: ArrayLike, child: ArrayLike, stamps
     while k < n and not joint.templates_ready:
         joint.update(yp[k], yc[k], None if st is None else float(st[k]))
         k += 1
-    # the gate's limits are refreshed every GATE_REFRESH_FRAMES frames (see OnlineJoint._gate_var): blocks are cut there
+    # the gate's limits are refreshed every GATE_REFRESH_FRAMES frames (see GateLimits.var): blocks are cut there
     # so that each part is judged with the limits its frames one by one would meet
     cuts = [k]
     if joint.gate > 0.0:
-        first = joint._arrivals + 1  # the number of frame k
+        first = joint._clock.arrivals + 1  # the number of frame k
         cuts += range(k + ((-first) % GATE_REFRESH_FRAMES or GATE_REFRESH_FRAMES), n, GATE_REFRESH_FRAMES)
     cuts.append(n)
     for lo, hi in itertools.pairwise(cuts):
@@ -198,11 +200,12 @@ def _update_block(joint: OnlineJoint, yp: FloatArray, yc: FloatArray, st: FloatA
     """:func:`update_many` once the templates are fixed: frames ``yp`` (M, Pa, 3), ``yc`` (M, Pc, 3) checked, stamps ``st`` (M,) s or None."""
     pose = joint._pose
     assert pose is not None and joint.n_markers is not None
-    numbers = joint._arrivals + 1 + np.arange(yp.shape[0], dtype=np.int64)
-    joint._arrivals += yp.shape[0]
+    clock = joint._clock
+    numbers = clock.arrivals + 1 + np.arange(yp.shape[0], dtype=np.int64)
+    clock.arrivals += yp.shape[0]
     if st is not None:
         before = np.empty_like(st)
-        before[0] = -np.inf if joint._last_stamp is None else joint._last_stamp
+        before[0] = -np.inf if clock.last_stamp is None else clock.last_stamp
         np.maximum.accumulate(st[:-1], out=before[1:])
         np.maximum(before[1:], before[0], out=before[1:])
         accepted = st > before
@@ -211,7 +214,7 @@ def _update_block(joint: OnlineJoint, yp: FloatArray, yc: FloatArray, st: FloatA
             joint.dropped["stamp_not_increasing"] = joint.dropped.get("stamp_not_increasing", 0) + n_late
             yp, yc, st, numbers = yp[accepted], yc[accepted], st[accepted], numbers[accepted]
         if st.size:
-            joint._last_stamp = float(st[-1])
+            clock.last_stamp = float(st[-1])
     m = yp.shape[0]
     if m == 0:
         return
@@ -239,7 +242,7 @@ def _update_block(joint: OnlineJoint, yp: FloatArray, yc: FloatArray, st: FloatA
         bad = int(m - np.count_nonzero(ok))
         if bad:
             joint.dropped[reason] = joint.dropped.get(reason, 0) + bad
-    gate_var = joint._gate_var()
+    gate_var = joint._limits.var(clock.arrivals, pose, joint)
     if gate_var is not None:
         _gated_block(joint, Y, missing, slots, parent_ok, child_ok, st, gate_var, numbers)
         return

@@ -134,7 +134,7 @@ class RelativePoseSums:
         The window's sums (layout: this module's ``_Z`` ... ``_FM``); None until a frame entered.
     chained : bool
         Whether the last frame that reached the joint entered the statistics: the next frame then
-        carries its lag pair with it (see :class:`~jointfit_core.estimator.OnlineJoint`, Notes,
+        carries its lag pair with it (see :class:`~jointfit_core.joint_estimate.JointEstimate`, Notes,
         *lag pairs*). The joint clears it for a frame that reaches it but cannot enter.
     """
 

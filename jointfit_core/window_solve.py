@@ -285,7 +285,7 @@ def solve_window(request: SolveRequest) -> SolveResult:
     eqs. 10-13 and 19, on running sums). The factor is
     :func:`~jointfit_core.serial.integrated_factor` of the joint residual's
     autocorrelation at the frame interval and at lags in seconds (see
-    :class:`~jointfit_core.estimator.OnlineJoint`'s Notes); skin markers add the soft-tissue part,
+    :class:`~jointfit_core.joint_estimate.JointEstimate`'s Notes); skin markers add the soft-tissue part,
     scaled from the residual's smooth part
     (:func:`~jointfit_core.serial.smooth_energy_from_lags`; hinge: also from
     the axis-alignment residual, :func:`~jointfit_core.serial.rotation_residual_sums`).

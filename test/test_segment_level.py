@@ -68,7 +68,7 @@ def _parent_levels(child_noise: float) -> tuple[float, FloatArray]:
     assert joint._pose is not None
     level = joint._pose.parent.pooled_level()
     assert level is not None
-    return level, joint._gate_sigma()
+    return level, joint._limits.sigma(joint._pose, joint)
 
 
 def test_a_segments_gate_level_does_not_depend_on_the_joints_other_segment() -> None:
