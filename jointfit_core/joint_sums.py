@@ -19,18 +19,17 @@ The layout of the sums vector is defined here (``_Z`` ... ``_FM``); the solve
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .artefact_sums import N_FEATURE_MOMENTS, N_FEATURE_SUMS, feature_sums
 from .errors import InputError
+from .frame_queue import FrameQueue
 from .segment_pair import PairSet
 from .serial import (
     LAG_TOLERANCE,
     N_TIME_LAG_SUMS,
-    NOMINAL_RATE_HZ,
     SERIAL_LAGS_S,
     LagHistory,
     LagSums,
@@ -97,25 +96,6 @@ def moving_seconds(lagged: FloatArray) -> FloatArray:
 PENDING_MAX = 64
 
 
-@dataclass(frozen=True, eq=False)
-class _PendingFrame:
-    """One frame queued by :meth:`RelativePoseSums.add_frame` (copies)."""
-
-    R: FloatArray  # (2, 3, 3)
-    d: FloatArray  # (2, 3)
-    ss: FloatArray  # (2,)
-    pairs: PairSet
-    stamp: float | None
-    frame_no: int
-    Y: FloatArray | None  # (2, Pmax, 3)
-    chained: bool  # carries its lag pair with the frame added before it
-
-    @property
-    def kind(self) -> tuple[bool, bool]:
-        """Frames of one kind are summed in one block: (has a stamp, has markers)."""
-        return (self.stamp is not None, self.Y is not None)
-
-
 class RelativePoseSums:
     """A joint's sliding window of relative-pose sums, fed frame by frame or block by block.
 
@@ -144,7 +124,7 @@ class RelativePoseSums:
         self._moments = moments
         self.n_sums = _N_SUMS_HINGE if moments else _N_SUMS
         self._sums: SlidingSums | None = None
-        self._pending: list[_PendingFrame] = []  # frames added, not yet summed (add_frame)
+        self._queue = FrameQueue(PENDING_MAX)  # frames added, not yet summed (add_frame)
         self.chained = False
         self._z_prev = np.zeros((3, 4))  # Z of the previous frame that entered the statistics
         self._history = LagHistory()  # recent frames in the statistics, for the pairs at lags in seconds
@@ -153,7 +133,7 @@ class RelativePoseSums:
     @property
     def window(self) -> SlidingSums | None:
         """The window's sums, every frame added so far in them (None until a frame entered)."""
-        if self._pending:
+        if self._queue.n:
             self.flush()
         return self._sums
 
@@ -165,7 +145,7 @@ class RelativePoseSums:
     @property
     def n_pending(self) -> int:
         """Frames added by :meth:`add_frame` and not summed yet (:meth:`flush` sums them)."""
-        return len(self._pending)
+        return self._queue.n
 
     def add_frame(
         self,
@@ -206,51 +186,19 @@ class RelativePoseSums:
         sees a sum without the frames added before. A live frame's outputs do not depend on the
         sums, so the node publishes them without this work.
         """
-        Yc = None if Y is None else Y.copy()
-        self._pending.append(_PendingFrame(R.copy(), d.copy(), ss.copy(), pairs, stamp, frame_no, Yc, self.chained))
+        queue = self._queue
+        if not queue.fits(stamp is not None, Y is not None):
+            self.flush()  # a block holds frames of one kind
+        queue.append(R, d, ss, pairs, stamp, frame_no, Y, self.chained)
         self.chained = True
-        if len(self._pending) >= PENDING_MAX:
+        if queue.full:
             self.flush()
 
     def flush(self) -> None:
-        """Sum the frames :meth:`add_frame` queued, in order, as one block (runs of equal kind)."""
-        pending, self._pending = self._pending, []
-        start = 0
-        for k in range(1, len(pending) + 1):  # runs with and without markers (Y), and with and without stamps
-            if k == len(pending) or pending[k].kind != pending[start].kind:
-                self._push_frames(pending[start:k])
-                start = k
-
-    def _push_frames(self, frames: list[_PendingFrame]) -> None:
-        """:meth:`add_block` of queued frames of one kind."""
-        sets: dict[int, int] = {}
-        rows: list[PairSet] = []
-        which = np.empty(len(frames), dtype=np.intp)
-        for k, f in enumerate(frames):
-            row = sets.get(id(f.pairs))
-            if row is None:
-                row = sets[id(f.pairs)] = len(rows)
-                rows.append(f.pairs)
-            which[k] = row
-        W_sets = np.stack([ps.W_flat for ps in rows])
-        dof_sets = np.stack([ps.dof for ps in rows])
-        stamped = frames[0].stamp is not None
-        stamps = np.array([f.stamp for f in frames], dtype=np.float64) if stamped else None
-        times = stamps if stamps is not None else np.array([f.frame_no for f in frames], dtype=np.float64) / NOMINAL_RATE_HZ
-        with_markers = frames[0].Y is not None
-        self._add_block(
-            np.stack([f.R for f in frames]),
-            np.stack([f.d for f in frames]),
-            np.stack([f.ss for f in frames]),
-            W_sets,
-            dof_sets,
-            which,
-            np.array([f.chained for f in frames], dtype=bool),
-            stamps,
-            times,
-            np.stack([f.Y for f in frames]) if with_markers else None,  # type: ignore[misc]
-            np.stack([ps.wn for ps in rows]) if with_markers else None,
-        )
+        """Sum the frames :meth:`add_frame` queued, in order, as one block."""
+        if self._queue.n:
+            b = self._queue.block()
+            self._add_block(b.R, b.d, b.ss, b.W_sets, b.dof_sets, b.which, b.paired, b.stamps, b.times, b.Y, b.wn_sets)
 
     def add_block(
         self,
@@ -294,8 +242,7 @@ class RelativePoseSums:
         forgetting sums the block's weighted contributions with matrix products, never forming
         them one per frame.
         """
-        if self._pending:
-            self.flush()
+        self.flush()
         self._add_block(R, d, ss, W_sets, dof_sets, which, paired, stamps, times, Y, wn_sets)
 
     def _add_block(
