@@ -21,7 +21,10 @@ each output encoded as CDR (``pose_with_covariance_bytes`` / ``axis_pose_bytes``
 frame's ``~/segments`` (:class:`~jointfit_ros.segment_output.SegmentOutput`: the segment poses
 gathered and encoded; its share is given apart), then the bookkeeping that does not change the
 outputs (:meth:`MessageRouter.after_outputs`: stamp gaps, live-geometry samples), in the node's
-order; **to the outputs** is the CPU from the message to its joints' outputs encoded. Solves are not
+order; **to the outputs** is the CPU from the message to its joints' outputs encoded. Every
+``READ_EVERY`` (10) messages every joint's sums are read, inside the timed span, as the node's
+estimate tick reads them for its solve requests every 0.1 s: since 2026-12-03 that sums the frames
+queued since (:mod:`jointfit_core.frame_queue`), work that used to be in each message. Solves are not
 in it (the node runs them in its worker process): every 50 messages one joint is solved in turn,
 outside the timed spans. Before timing, ``WARM`` frames build the templates and the gate's history
 and every joint is solved, so that every frame of the timed part has an output per joint
@@ -67,6 +70,10 @@ RATE = 100.0
 T0 = 1_000_000_000_000
 WARM = 300
 SOLVE_EVERY = 50
+#: Frames between two reads of every joint's sums, inside the timed span: the node's estimate tick every
+#: estimate_period (0.1 s, 10 frames at 100 Hz) reads them for the solve requests, which sums the frames
+#: queued since (jointfit_core.frame_queue); the solves themselves run in the worker process.
+READ_EVERY = 10
 COUNTS = (1, 2, 6, 12)
 
 
@@ -78,6 +85,7 @@ class _Path:
         self.router = MessageRouter(cfg, self.runners)
         self.segments = SegmentOutput(self.runners)
         self.turn = 0
+        self.frames = 0
         self.outputs = 0
         self.segment_cpu = 0.0
         self.to_outputs_cpu = 0.0
@@ -112,6 +120,10 @@ class _Path:
                 self.segments.pose_array(T0, "world", R, t)
                 self.segment_cpu += time.process_time() - c1
                 self.router.after_outputs()  # as the node: after the frame's outputs
+                self.frames += 1
+                if self.frames % READ_EVERY == 0:  # the node's estimate tick reads every joint's sums (flushes its queue)
+                    for r in self.runners:
+                        _ = r.estimator.n_window
             total += time.process_time() - c0
             self.runners[self.turn].estimate(force=True)
             self.turn = (self.turn + 1) % len(self.runners)
@@ -181,7 +193,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows,
     )
     text = "\n".join([
-        "# Per-message CPU of the node's path on the fake skeleton (issue 16: before the redesign)",
+        "# Per-message CPU of the node's path on the fake skeleton (issue 16)",
         "",
         f"Command: `python bench/skeleton.py{' --quick' if opts.quick else ''}`; commit {commit}; "
         f"{started:%Y-%m-%d %H:%M %Z}.",
