@@ -5,7 +5,7 @@ and the sums take the queue as one block
 (:meth:`~jointfit_core.joint_sums.RelativePoseSums.flush`), so that the live and the
 offline feed share the block path. Appending writes into rows of arrays allocated
 once (no per-frame allocation); :meth:`FrameQueue.block` hands the queued rows over
-in the form ``add_block`` takes them.
+as a :class:`PosedBlock`, the form ``add_block`` takes.
 """
 
 from __future__ import annotations
@@ -18,26 +18,50 @@ from numpy.typing import NDArray
 from .segment_pair import PairSet
 from .serial import NOMINAL_RATE_HZ
 
-__all__ = ["FrameQueue", "QueuedBlock"]
+__all__ = ["FrameQueue", "PosedBlock"]
 
 FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)
-class QueuedBlock:
-    """The queued frames as :meth:`~jointfit_core.joint_sums.RelativePoseSums.add_block` takes them (views)."""
+class PosedBlock:
+    """Frames whose two segments are posed, in order, as a joint's sums take them
+    (:meth:`~jointfit_core.joint_sums.RelativePoseSums.add_block`; the offline feed's blocks and the
+    live feed's queue, :meth:`FrameQueue.block`).
 
-    R: FloatArray  # (M, 2, 3, 3)
-    d: FloatArray  # (M, 2, 3)
-    ss: FloatArray  # (M, 2)
-    W_sets: FloatArray  # (S, 72): the visible marker sets' unit pose covariances
-    dof_sets: FloatArray  # (S, 2)
-    which: NDArray[np.intp]  # (M,): each frame's marker set
-    paired: NDArray[np.bool_]  # (M,): carries its lag pair with the frame before it
-    stamps: FloatArray | None  # (M,) s, or None (not stamped)
-    times: FloatArray  # (M,) s: the stamps, or frame numbers at the nominal rate
-    Y: FloatArray | None  # (M, 2, Pmax, 3), or None (no markers)
-    wn_sets: FloatArray | None  # (S, 2, Pmax)
+    Attributes
+    ----------
+    R, d, ss : ndarray, shapes (M, 2, 3, 3), (M, 2, 3), (M, 2)
+        Per frame, the parent's and the child's rotation (template frame to world), translation
+        (input units) and pose-fit residual sum of squares (input units squared).
+    W_sets, dof_sets : ndarray, shapes (S, 72), (S, 2)
+        The unit pose covariances and dofs of ``S`` visible marker sets.
+    which : ndarray of int, shape (M,)
+        Each frame's visible marker set (its row in ``W_sets`` and ``dof_sets``).
+    paired : ndarray of bool, shape (M,)
+        Per frame, whether it carries its lag pair with the frame before it (the block's
+        previous row; for row 0, the last frame the window took).
+    stamps : ndarray, shape (M,), or None
+        Seconds (None: a window without stamps).
+    times : ndarray, shape (M,)
+        The frames' times for the pairs at lags in seconds (the stamps, or frame numbers at the
+        nominal rate).
+    Y, wn_sets : ndarray, shapes (M, 2, Pmax, 3), (S, 2, Pmax), or None
+        Skin markers: the frames' markers and the marker sets' pose weights, for the white-noise
+        sums (:class:`~jointfit_core.white_noise_sums.SecondDifferences`); None: they add nothing.
+    """
+
+    R: FloatArray
+    d: FloatArray
+    ss: FloatArray
+    W_sets: FloatArray
+    dof_sets: FloatArray
+    which: NDArray[np.intp]
+    paired: NDArray[np.bool_]
+    stamps: FloatArray | None
+    times: FloatArray
+    Y: FloatArray | None = None
+    wn_sets: FloatArray | None = None
 
 
 class FrameQueue:
@@ -102,7 +126,7 @@ class FrameQueue:
         self.kind = (stamp is not None, Y is not None)
         self.n = k + 1
 
-    def block(self) -> QueuedBlock:
+    def block(self) -> PosedBlock:
         """The queued frames (views of the rows) with their distinct marker sets; empties the queue.
 
         The views stay valid until the next :meth:`append`.
@@ -121,7 +145,7 @@ class FrameQueue:
         stamps = self._stamps[:m] if stamped else None
         times = stamps if stamps is not None else self._numbers[:m] / NOMINAL_RATE_HZ
         Y = self._Y[:m] if markers and self._Y is not None else None
-        out = QueuedBlock(
+        out = PosedBlock(
             R=self._R[:m],
             d=self._d[:m],
             ss=self._ss[:m],

@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .checks import as_real_array
 from .errors import InputError
+from .frame_queue import PosedBlock
 from .gate import BlockJumps
 from .pose import MIN_POSE_MARKERS
 from .segment_pair import poses_many, relative_poses
@@ -450,6 +451,6 @@ def _push_block(
     times = stamps if stamps is not None else numbers[rows] / NOMINAL_RATE_HZ
     table = pose.table()
     joint._stats.add_block(
-        R, d, ss, table[6], table[5], which, paired, stamps, np.asarray(times, dtype=np.float64), Y, table[1]
+        PosedBlock(R, d, ss, table[6], table[5], which, paired, stamps, np.asarray(times, dtype=np.float64), Y, table[1])
     )
     joint._version += 1

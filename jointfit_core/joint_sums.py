@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from .artefact_sums import N_FEATURE_MOMENTS, N_FEATURE_SUMS, feature_sums
 from .errors import InputError
-from .frame_queue import FrameQueue
+from .frame_queue import FrameQueue, PosedBlock
 from .segment_pair import PairSet
 from .serial import (
     LAG_TOLERANCE,
@@ -197,44 +197,10 @@ class RelativePoseSums:
     def flush(self) -> None:
         """Sum the frames :meth:`add_frame` queued, in order, as one block."""
         if self._queue.n:
-            b = self._queue.block()
-            self._add_block(b.R, b.d, b.ss, b.W_sets, b.dof_sets, b.which, b.paired, b.stamps, b.times, b.Y, b.wn_sets)
+            self._sum_block(self._queue.block())
 
-    def add_block(
-        self,
-        R: FloatArray,
-        d: FloatArray,
-        ss: FloatArray,
-        W_sets: FloatArray,
-        dof_sets: FloatArray,
-        which: NDArray[np.intp],
-        paired: NDArray[np.bool_],
-        stamps: FloatArray | None,
-        times: FloatArray,
-        Y: FloatArray | None = None,
-        wn_sets: FloatArray | None = None,
-    ) -> None:
+    def add_block(self, block: PosedBlock) -> None:
         """Push a block of frames whose two segments are posed, in a few vectorised steps.
-
-        Parameters
-        ----------
-        R, d, ss : ndarray, shapes (M, 2, 3, 3), (M, 2, 3), (M, 2)
-            Per frame, as in :meth:`add_frame`.
-        W_sets, dof_sets : ndarray, shapes (S, 72), (S, 2)
-            The unit pose covariances and dofs of ``S`` visible marker sets.
-        which : ndarray of int, shape (M,)
-            Each frame's visible marker set (its row in ``W_sets`` and ``dof_sets``).
-        paired : ndarray of bool, shape (M,)
-            Per frame, whether it carries its lag pair with the frame before it (the block's
-            previous row; for row 0, the last frame this window took).
-        stamps : ndarray, shape (M,), or None
-            Seconds (None: a window without stamps).
-        times : ndarray, shape (M,)
-            The frames' times for the pairs at lags in seconds (the stamps, or frame numbers at the
-            nominal rate).
-        Y, wn_sets : ndarray, shapes (M, 2, Pmax, 3), (S, 2, Pmax), optional
-            Skin markers: the frames' markers and the marker sets' pose weights, for the white-noise
-            sums (as :meth:`add_frame`); without them they add nothing.
 
         Notes
         -----
@@ -243,23 +209,12 @@ class RelativePoseSums:
         them one per frame.
         """
         self.flush()
-        self._add_block(R, d, ss, W_sets, dof_sets, which, paired, stamps, times, Y, wn_sets)
+        self._sum_block(block)
 
-    def _add_block(
-        self,
-        R: FloatArray,
-        d: FloatArray,
-        ss: FloatArray,
-        W_sets: FloatArray,
-        dof_sets: FloatArray,
-        which: NDArray[np.intp],
-        paired: NDArray[np.bool_],
-        stamps: FloatArray | None,
-        times: FloatArray,
-        Y: FloatArray | None,
-        wn_sets: FloatArray | None,
-    ) -> None:
+    def _sum_block(self, block: PosedBlock) -> None:
         """:meth:`add_block` of frames that come after every frame summed so far."""
+        R, d, ss, W_sets, dof_sets = block.R, block.d, block.ss, block.W_sets, block.dof_sets
+        which, paired, stamps, Y, wn_sets = block.which, block.paired, block.stamps, block.Y, block.wn_sets
         m = R.shape[0]
         window = self._window()
         x = np.empty((m, 3, 4))
@@ -272,7 +227,7 @@ class RelativePoseSums:
         z_prev[0] = self._z_prev
         z_prev[1:] = z[:-1]
         lagged = np.empty((m, N_TIME_LAG_SUMS))
-        self._history.contributions(np.asarray(times, dtype=np.float64), z, lagged)
+        self._history.contributions(np.asarray(block.times, dtype=np.float64), z, lagged)
         white = np.zeros((m, 4))
         if self._skin and Y is not None and wn_sets is not None:
             white = self._second.add_many(Y, wn_sets[which], R, d, paired)
