@@ -624,7 +624,7 @@ class VectorSkeleton:
     def _lag_rows(self, time: float, je: Any) -> tuple[IntArray, BoolArray]:
         """Per entering joint and lag, the history row paired with this frame (the nearest frame it entered) and whether taken.
 
-        :meth:`LagHistory.contribution_one <jointfit_core.serial.LagHistory.contribution_one>`'s search
+        :meth:`LagHistory.contributions <jointfit_core.serial.LagHistory.contributions>`'s pairing
         over each joint's own frames, vectorised: ``rank[j, i]`` counts the frames joint ``j``
         entered up to row ``i`` and ``rows_of[j, r]`` is the row of its ``r``-th, so the frames
         before and after a target are two gathers.
