@@ -18,7 +18,6 @@ import dataclasses
 import re
 import sys
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -40,11 +39,9 @@ from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
-from jointfit_core.errors import JointfitError
 from jointfit_core.estimator import JointOutput, SolveRequest
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 
-from .activity import InputActivity
 from .calibration_store import NodeCalibrationFile
 from .conversions import (
     axis_arrow_marker,
@@ -57,9 +54,11 @@ from .conversions import (
 from .description import RobotDescription
 from .graph import graph_problems
 from .guard import CallbackGuard
+from .input_status import InputStatus
 from .inputs import MessageRouter, Routed
 from .joint_states import JointStates, joint_state_bytes
 from .naming import entry_hint, params_files, status_prefix
+from .node_services import freeze_joints, save_joints
 from .params import (
     JOINT_PARAMS,
     NODE_PARAMS,
@@ -73,7 +72,7 @@ from .params import (
     node_config,
     range_text,
 )
-from .runner import ERROR, OK, STALE, WARN, JointRunner
+from .runner import ERROR, WARN, JointRunner
 from .segment_output import SegmentOutput
 from .solver_process import SolverProcess
 from .status_log import StatusLog
@@ -91,12 +90,6 @@ _ROS_TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,
     "string_array": ParameterType.PARAMETER_STRING_ARRAY,
 }
-#: The input status warns when, over the last :data:`MISSED_WINDOW_S` seconds (at least ``stale_after``),
-#: at least this many frames of the marker stream never arrived and they are more than
-#: :data:`MISSED_WARN_SHARE` of the stream's frames.
-MISSED_WARN_MIN = 10
-MISSED_WARN_SHARE = 0.05
-MISSED_WINDOW_S = 5.0
 
 
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
@@ -164,7 +157,7 @@ class JointfitNode(Node):
         self._segments_pub = self.create_publisher(PoseArray, "~/segments", 10) if self._segments.names else None
         self._tf = TfOutput(self) if self._segments.names else None
         self._subscribers_due = 0.0
-        self._gap_samples = deque()
+        self._input_status = InputStatus()  # the input status's samples between diagnostics ticks
         self._wants = (False, False)
         if self._tf is not None and self._tf.problem:
             self.get_logger().info(self._tf.problem)
@@ -472,35 +465,19 @@ class JointfitNode(Node):
         self._publish_description()
         arr = DiagnosticArray()
         arr.header.stamp = stamp_from_ns(self._now_ns())
-        node_values: dict[str, object] = {
-            "messages": self.counters["messages"],
-            "malformed messages": self.counters["malformed"],
-            "messages from another frame_id": self.counters["wrong_frame_id"],
-            "messages with label problems": self.counters["label_problems"],
+        node_values: dict[str, object] = {}
+        now = time.monotonic()
+        level, message = self._input_status.status(now, self.counters, self.router.gaps, self.cfg, node_values)
+        node_values.update({
             "robot description": self._description.problem or f"published ({self._description.joints} frozen joints)",
-            "unassigned markers (unlabelled clouds)": self.counters["unassigned"],
-            "oversized clouds dropped": self.counters["oversized_clouds"],
             "input frame_id": self.router.frame_id,
             "segments (~/segments order)": ", ".join(self._segments.names) or "none (no marker joints)",
             "TF": "no marker joints" if self._tf is None else self._tf.problem or "broadcast (/tf, /tf_static)",
             "estimates solved in": "a worker process" if self._solver is not None else "the executor thread",
-        }
-        problems = ("malformed", "label_problems", "wrong_frame_id", "oversized_clouds")
-        level = WARN if any(self.counters[k] for k in problems) else OK
-        node_values["unexpected errors (callbacks)"] = self.guard.count
+            "unexpected errors (callbacks)": self.guard.count,
+        })
         if self.guard.count:
             node_values["last unexpected error"] = self.guard.last
-        message = "receiving" if self.counters["messages"] else f"waiting for {self.cfg.marker_topic}"
-        if self.counters["malformed"]:
-            message += f"; {self.counters['malformed']} malformed messages dropped"
-        if self.counters["wrong_frame_id"]:
-            message += (
-                f"; {self.counters['wrong_frame_id']} messages from a frame_id other than "
-                f"{self.cfg.input_frame_id!r} dropped"
-            )
-        now = time.monotonic()
-        level, message = self._input_activity(now, level, message, node_values)
-        if self.guard.count:
             level = ERROR if self.guard.recent else max(level, WARN)
             message += f"; {self.guard.count} unexpected error(s), last: {self.guard.last}"
         graph = self._graph_problems()
@@ -552,56 +529,6 @@ class JointfitNode(Node):
             self._warn_once(f"graph:{text}", text)
         return problems
 
-    _input_samples: InputActivity | None = None  # the input status's samples (made at the first tick)
-    _gap_samples: deque[tuple[float, int, int]]  # (tick time, frames received, frames missed) over stale_after
-
-    def _input_activity(self, now: float, level: int, message: str, values: dict[str, object]) -> tuple[int, str]:
-        """The ``jointfit: input`` status with the stamp counters and the recent activity (adds to ``values``).
-
-        STALE after ``stale_after`` seconds without messages, WARN when every
-        message since the previous tick was dropped; the input rate is measured
-        over the last ``stale_after`` seconds.
-        """
-        c = self.counters
-        values["messages with an invalid stamp"] = c["invalid_stamps"]
-        values["messages stamped too far ahead (max_stamp_jump)"] = c["stamps_ahead"]
-        values["timeline restarts"] = c["timeline_restarts"]
-        dropped = {k: c[k] for k in ("malformed", "wrong_frame_id", "invalid_stamps", "stamps_ahead", "oversized_clouds")}
-        if self._input_samples is None:
-            self._input_samples = InputActivity(self.cfg.stale_after)
-        samples = self._input_samples
-        samples.window_s = self.cfg.stale_after
-        act = samples.sample(now, c["messages"], c["messages"] - sum(dropped.values()), dropped)
-        if act.rate_hz is not None:
-            values["input rate (Hz)"] = round(act.rate_hz, 1)
-        if c["stamps_ahead"] or c["invalid_stamps"]:
-            level = max(level, WARN)
-            message += f"; {c['stamps_ahead'] + c['invalid_stamps']} messages with bad stamps dropped"
-        if c["timeline_restarts"]:
-            message += f"; the stamps restarted {c['timeline_restarts']} times (looped or restarted recording)"
-        gaps = self.router.gaps
-        values["frames missed (gaps in the stamps)"] = gaps.missed
-        # over the last few seconds: a burst lost in one stall of the source or the node is not a loss rate
-        history = self._gap_samples
-        history.append((now, gaps.received, gaps.missed))
-        while len(history) > 2 and history[1][0] <= now - max(MISSED_WINDOW_S, self.cfg.stale_after):
-            history.popleft()
-        received, missed = gaps.received - history[0][1], gaps.missed - history[0][2]
-        if received + missed:
-            values["frames missed, recent (%)"] = round(100.0 * missed / (received + missed), 2)
-        if missed >= MISSED_WARN_MIN and missed > MISSED_WARN_SHARE * (received + missed):
-            level = max(level, WARN)
-            message += (
-                f"; {missed} of the last {received + missed} frames never arrived (gaps in the stamps of the "
-                f"{1.0 / gaps.period_s:.0f} Hz stream): the node is not keeping up, or the network or the driver "
-                "drops them"
-            )
-        if act.silent_s is not None and act.silent_s >= self.cfg.stale_after:
-            return STALE, f"no messages for {act.silent_s:.1f} s; {message}"
-        if act.all_dropped:
-            return max(level, WARN), f"{act.dropped_text('messages')}; {message}"
-        return level, message
-
     def destroy_node(self) -> None:
         if self._solver is not None:
             self._solver.close()
@@ -622,43 +549,12 @@ class JointfitNode(Node):
         return response
 
     def _on_freeze(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        results = []
-        ok = True
-        for runner in self.runners.values():
-            try:
-                results.append(runner.freeze(bool(request.data)))
-            except JointfitError as exc:
-                ok = False
-                results.append(f"{runner.cfg.name}: cannot freeze: {exc}")
-        response.success = ok
-        response.message = "; ".join(results)
+        response.success, response.message = freeze_joints(self.runners.values(), bool(request.data))
         self.get_logger().info(response.message)
         return response
 
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        if self.calibration_file is not None:
-            try:
-                results = self.calibration_file.save()
-                response.success = not self.calibration_file.unsaved
-            except (JointfitError, OSError) as exc:
-                results = [f"not saved: {exc}"]
-                response.success = False
-            response.message = "; ".join(results)
-            self.get_logger().info(response.message)
-            return response
-        results = []
-        ok = True
-        for runner in self.runners.values():
-            if not runner.cfg.calibration_file:
-                results.append(f"{runner.cfg.name}: no calibration_file configured")
-                continue
-            try:
-                results.append(f"{runner.cfg.name}: saved {runner.save()}")
-            except (JointfitError, OSError) as exc:
-                ok = False
-                results.append(f"{runner.cfg.name}: not saved: {exc}")
-        response.success = ok and any("saved" in r for r in results)
-        response.message = "; ".join(results)
+        response.success, response.message = save_joints(self.runners.values(), self.calibration_file)
         self.get_logger().info(response.message)
         return response
 

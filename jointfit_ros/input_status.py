@@ -1,0 +1,121 @@
+"""The node's ``<node>: input`` diagnostics status: counters, stamps, recent activity, frames missed.
+
+Pure Python (no rclpy), so that it is tested without ROS: :class:`InputStatus`
+keeps what the status needs between two diagnostics ticks (the input's
+activity samples and the recent stamp-gap counts) and turns the message
+router's counters and stamp gaps into a level, a message and the status's
+values; the node adds its own values (graph problems, unexpected errors) and
+publishes it with the joints' statuses.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+from .activity import InputActivity
+from .joint_diagnostics import OK, STALE, WARN
+from .params import NodeConfig
+
+__all__ = ["MISSED_WARN_MIN", "MISSED_WARN_SHARE", "MISSED_WINDOW_S", "InputStatus"]
+
+#: The input status warns when, over the last :data:`MISSED_WINDOW_S` seconds (at least ``stale_after``),
+#: at least this many frames of the marker stream never arrived and they are more than
+#: :data:`MISSED_WARN_SHARE` of the stream's frames.
+MISSED_WARN_MIN = 10
+MISSED_WARN_SHARE = 0.05
+MISSED_WINDOW_S = 5.0
+#: Counters of messages dropped whole (each is a reason the input status gives).
+_DROPPED = ("malformed", "wrong_frame_id", "invalid_stamps", "stamps_ahead", "oversized_clouds")
+#: Counters that make the input status WARN by themselves.
+_PROBLEMS = ("malformed", "label_problems", "wrong_frame_id", "oversized_clouds")
+
+
+class InputStatus:
+    """What the input status keeps between diagnostics ticks, and the status itself (:meth:`status`)."""
+
+    def __init__(self) -> None:
+        self._samples: InputActivity | None = None  # the input's activity samples (made at the first tick)
+        self._gaps: deque[tuple[float, int, int]] = deque()  # (tick time, frames received, frames missed)
+
+    def status(self, now: float, counters: dict[str, int], gaps: Any, cfg: NodeConfig, values: dict[str, object]) -> tuple[int, str]:
+        """The input status's level and message at ``now`` (monotonic s); adds its values to ``values``.
+
+        Parameters
+        ----------
+        now : float
+            Monotonic seconds of this tick.
+        counters : dict
+            The message router's counters (:attr:`~jointfit_ros.inputs.MessageRouter.counters`).
+        gaps : StampGaps
+            The router's stamp gaps (frames received and missed; :mod:`jointfit_ros.stamp_gaps`).
+        cfg : NodeConfig
+            The node's parameters (topic, frame id, ``stale_after``).
+        values : dict
+            The status's key-value pairs; the counters, the input rate and the frames missed are added.
+
+        Returns
+        -------
+        (int, str)
+            OK, WARN (dropped or missed messages, bad stamps, every message since the previous tick
+            dropped) or STALE (nothing for ``stale_after`` seconds), and the message.
+        """
+        c = counters
+        values.update({
+            "messages": c["messages"],
+            "malformed messages": c["malformed"],
+            "messages from another frame_id": c["wrong_frame_id"],
+            "messages with label problems": c["label_problems"],
+            "unassigned markers (unlabelled clouds)": c["unassigned"],
+            "oversized clouds dropped": c["oversized_clouds"],
+        })
+        level = WARN if any(c[k] for k in _PROBLEMS) else OK
+        message = "receiving" if c["messages"] else f"waiting for {cfg.marker_topic}"
+        if c["malformed"]:
+            message += f"; {c['malformed']} malformed messages dropped"
+        if c["wrong_frame_id"]:
+            message += f"; {c['wrong_frame_id']} messages from a frame_id other than {cfg.input_frame_id!r} dropped"
+        values["messages with an invalid stamp"] = c["invalid_stamps"]
+        values["messages stamped too far ahead (max_stamp_jump)"] = c["stamps_ahead"]
+        values["timeline restarts"] = c["timeline_restarts"]
+        dropped = {k: c[k] for k in _DROPPED}
+        if self._samples is None:
+            self._samples = InputActivity(cfg.stale_after)
+        samples = self._samples
+        samples.window_s = cfg.stale_after
+        act = samples.sample(now, c["messages"], c["messages"] - sum(dropped.values()), dropped)
+        if act.rate_hz is not None:
+            values["input rate (Hz)"] = round(act.rate_hz, 1)
+        if c["stamps_ahead"] or c["invalid_stamps"]:
+            level = max(level, WARN)
+            message += f"; {c['stamps_ahead'] + c['invalid_stamps']} messages with bad stamps dropped"
+        if c["timeline_restarts"]:
+            message += f"; the stamps restarted {c['timeline_restarts']} times (looped or restarted recording)"
+        level, message = self._missed(now, gaps, cfg, level, message, values)
+        if act.silent_s is not None and act.silent_s >= cfg.stale_after:
+            return STALE, f"no messages for {act.silent_s:.1f} s; {message}"
+        if act.all_dropped:
+            return max(level, WARN), f"{act.dropped_text('messages')}; {message}"
+        return level, message
+
+    def _missed(
+        self, now: float, gaps: Any, cfg: NodeConfig, level: int, message: str, values: dict[str, object]
+    ) -> tuple[int, str]:
+        """Frames that never arrived (gaps in the stamps), over the last few seconds: a burst lost in one
+        stall of the source or the node is not a loss rate."""
+        values["frames missed (gaps in the stamps)"] = gaps.missed
+        history = self._gaps
+        history.append((now, gaps.received, gaps.missed))
+        while len(history) > 2 and history[1][0] <= now - max(MISSED_WINDOW_S, cfg.stale_after):
+            history.popleft()
+        received, missed = gaps.received - history[0][1], gaps.missed - history[0][2]
+        if received + missed:
+            values["frames missed, recent (%)"] = round(100.0 * missed / (received + missed), 2)
+        if missed >= MISSED_WARN_MIN and missed > MISSED_WARN_SHARE * (received + missed):
+            level = max(level, WARN)
+            message += (
+                f"; {missed} of the last {received + missed} frames never arrived (gaps in the stamps of the "
+                f"{1.0 / gaps.period_s:.0f} Hz stream): the node is not keeping up, or the network or the driver "
+                "drops them"
+            )
+        return level, message

@@ -1,0 +1,75 @@
+"""The node's input status and its freeze / save services, without ROS (:mod:`jointfit_ros.input_status`,
+:mod:`jointfit_ros.node_services`).
+
+Fed through the message router as the node feeds it: malformed messages and frames that never
+arrive make the input WARN and say why, silence makes it STALE, and the services name every joint
+(one that cannot freeze, one without a calibration file) instead of failing as a whole.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from helpers import fake_rig_values
+
+from jointfit_ros.fake_mocap import frame_at, make_rigs
+from jointfit_ros.input_status import InputStatus
+from jointfit_ros.inputs import MessageRouter
+from jointfit_ros.joint_diagnostics import OK, STALE, WARN
+from jointfit_ros.node_services import freeze_joints, save_joints
+from jointfit_ros.params import node_config
+from jointfit_ros.raw import pose_array_bytes
+from jointfit_ros.runner import JointRunner
+
+T0 = 1_000_000_000_000
+RATE = 100.0
+
+
+def _router(**extra: object) -> tuple[MessageRouter, list[JointRunner]]:
+    cfg = node_config(fake_rig_values(**extra))
+    runners = [JointRunner(j, cfg) for j in cfg.joints]
+    return MessageRouter(cfg, runners), runners
+
+
+def _raw(rigs: object, k: int) -> bytes:
+    rng = np.random.default_rng(k)
+    return pose_array_bytes(T0 + round(k / RATE * 1e9), "world", frame_at(rigs, k / RATE, rng, 0.0005, 0.0))  # type: ignore[arg-type]
+
+
+def test_the_input_status_says_waiting_receiving_missed_and_stale() -> None:
+    router, _ = _router(stale_after=2.0)
+    status = InputStatus()
+    values: dict[str, object] = {}
+    level, message = status.status(0.0, router.counters, router.gaps, router.cfg, values)
+    assert level == OK and message == "waiting for markers" and values["messages"] == 0
+    rigs = make_rigs(0)
+    for k in range(330):
+        if not 230 <= k < 260:  # 30 frames (0.3 s, shorter than a pause; after the period is known) never arrive
+            router.markers(_raw(rigs, k))
+    router.markers(b"\x00\x01garbage")
+    values = {}
+    level, message = status.status(1.0, router.counters, router.gaps, router.cfg, values)
+    assert level == WARN
+    assert message.startswith("receiving; 1 malformed messages dropped")
+    assert "30 of the last 330 frames never arrived" in message, message
+    assert values["malformed messages"] == 1 and values["frames missed (gaps in the stamps)"] == 30
+    level, message = status.status(4.0, router.counters, router.gaps, router.cfg, {})  # silent for 3 s > stale_after
+    assert level == STALE and message.startswith("no messages for 3.0 s")
+
+
+def test_freeze_and_save_name_every_joint(tmp_path: Path) -> None:
+    router, runners = _router(**{"hip.calibration_file": str(tmp_path / "hip.yaml")})
+    ok, message = freeze_joints(runners, True)  # nothing estimated yet: neither joint can freeze
+    assert not ok and "hip: cannot freeze" in message and "knee: cannot freeze" in message
+    ok, message = save_joints(runners, None)
+    assert not ok and "knee: no calibration_file configured" in message and "hip: not saved" in message
+    rigs = make_rigs(0)
+    for k in range(600):
+        router.markers(_raw(rigs, k))
+    for r in runners:
+        assert r.estimate(force=True), r.last_error
+    ok, message = save_joints(runners, None)
+    assert ok and f"hip: saved {tmp_path / 'hip.yaml'}" in message and (tmp_path / "hip.yaml").exists()
+    ok, message = freeze_joints(runners, True)
+    assert ok and all(r.estimator.frozen for r in runners), message
