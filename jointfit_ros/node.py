@@ -5,11 +5,17 @@ Console script ``jointfit_node``::
     jointfit_node --ros-args --params-file config/hip_knee.yaml
 
 The node stays thin: ``__init__`` declares the parameters
-(:mod:`jointfit_ros.params`), creates one :class:`~jointfit_ros.runner.JointRunner`
-per joint, the subscriptions (``raw=True``: messages are parsed from their
-bytes with numpy, :mod:`jointfit_ros.conversions`), publishers, timers and
-services; the callbacks convert and hand over to the runners. Topics,
-parameters and services are listed in the README.
+(:mod:`jointfit_ros.node_parameters`, from the specs of :mod:`jointfit_ros.params`),
+creates one :class:`~jointfit_ros.runner.JointRunner` per joint, the subscriptions
+(``raw=True``: messages are parsed from their bytes with numpy,
+:mod:`jointfit_ros.conversions`), publishers, timers and services; the callbacks
+convert and hand over to the runners. What it publishes besides the joints' outputs
+is made elsewhere: the input's diagnostics status (:mod:`jointfit_ros.input_status`),
+the joints' (:mod:`jointfit_ros.joint_diagnostics`), the RViz markers
+(:mod:`jointfit_ros.rviz_output`), ``~/segments`` and TF; the freeze and save
+services' work is :mod:`jointfit_ros.node_services`'s. SIGINT and SIGTERM stop
+it between callbacks (:mod:`jointfit_ros.stop_request`). Topics, parameters and
+services are listed in the README.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -44,9 +50,7 @@ from jointfit_core.hinge_from_sums import PoseSumsAxis
 
 from .calibration_store import NodeCalibrationFile
 from .conversions import (
-    axis_arrow_marker,
     axis_pose_bytes,
-    covariance_ellipsoid_marker,
     diagnostic_status,
     pose_with_covariance_bytes,
     stamp_from_ns,
@@ -58,21 +62,15 @@ from .input_status import InputStatus
 from .inputs import MessageRouter, Routed
 from .joint_states import JointStates, joint_state_bytes
 from .naming import entry_hint, params_files, status_prefix
+from .node_parameters import declare_parameters, runtime_changes
 from .node_services import freeze_joints, save_joints
 from .params import (
-    JOINT_PARAMS,
-    NODE_PARAMS,
-    RUNTIME_PARAMS,
-    SEGMENT_PARAMS,
     ConfigError,
     NodeConfig,
-    ParamSpec,
-    check_known,
-    check_value,
     node_config,
-    range_text,
 )
 from .runner import ERROR, WARN, JointRunner
+from .rviz_output import joint_markers
 from .segment_output import SegmentOutput
 from .solver_process import SolverProcess
 from .status_log import StatusLog
@@ -82,26 +80,6 @@ from .tf_output import TfOutput
 __all__ = ["JointfitNode", "main"]
 
 RCLError = _rclpy.RCLError
-
-_ROS_TYPES = {
-    "string": ParameterType.PARAMETER_STRING,
-    "int": ParameterType.PARAMETER_INTEGER,
-    "double": ParameterType.PARAMETER_DOUBLE,
-    "bool": ParameterType.PARAMETER_BOOL,
-    "string_array": ParameterType.PARAMETER_STRING_ARRAY,
-}
-
-
-def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
-    text = spec.description + range_text(spec)
-    if spec.choices:
-        text += f" One of: {', '.join(spec.choices)}."
-    # Dynamic typing: rclpy would refuse an integer for a double (and any wrong type) with a traceback
-    # at start; jointfit's own checks (check_value) accept 1 for 1.0 and name the parameter otherwise.
-    return ParameterDescriptor(
-        type=_ROS_TYPES[spec.kind], description=text, read_only=not spec.runtime, dynamic_typing=True
-    )
-
 
 class JointfitNode(Node):
     """Online joint centres and axes from motion-capture markers (see the module docstring).
@@ -115,7 +93,7 @@ class JointfitNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("jointfit", **kwargs)
         self.guard = CallbackGuard(self.get_logger().error)
-        self.cfg: NodeConfig = node_config(self._declare_parameters())
+        self.cfg: NodeConfig = node_config(declare_parameters(self))
         reliability = (
             ReliabilityPolicy.RELIABLE if self.cfg.qos_reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
         )
@@ -200,26 +178,6 @@ class JointfitNode(Node):
 
     # ------------------------------------------------------------------ parameters
 
-    def _declare(self, name: str, spec: ParamSpec) -> Any:
-        # string arrays: no default value (rclpy cannot type an empty list); check_value gives [] for None
-        param = self.declare_parameter(name, None if spec.kind == "string_array" else spec.default, _descriptor(spec))
-        return param.value
-
-    def _declare_parameters(self) -> dict[str, Any]:
-        """Declare every parameter once (joint ones after reading ``joints``); return their values."""
-        values = {spec.name: self._declare(spec.name, spec) for spec in NODE_PARAMS}
-        specs = {spec.name: spec for spec in NODE_PARAMS}
-        joints = check_value(specs["joints"], values["joints"], "joints")
-        segments = check_value(specs["segments"], values["segments"], "segments")
-        # a misspelt key in the params file is an error
-        check_known(self._parameter_overrides, joints, segments)
-        for owner, owned in ((joints, JOINT_PARAMS), (segments, SEGMENT_PARAMS)):
-            for name in owner:
-                for spec in owned:
-                    full = f"{name}.{spec.name}"
-                    values[full] = self._declare(full, spec)
-        return values
-
     def _on_set_parameters_guarded(self, params: list[Parameter]) -> SetParametersResult:
         try:
             return self._on_set_parameters(params)
@@ -229,15 +187,9 @@ class JointfitNode(Node):
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate run-time changes with the same checks as at start; apply them when all pass."""
-        specs = {s.name: s for s in NODE_PARAMS}
-        changes: dict[str, Any] = {}
-        for p in params:
-            if p.name not in RUNTIME_PARAMS:
-                continue  # read-only parameters are refused by rclpy itself
-            try:
-                changes[p.name] = check_value(specs[p.name], p.value, p.name)
-            except ConfigError as exc:
-                return SetParametersResult(successful=False, reason=str(exc))
+        changes = runtime_changes(params)
+        if isinstance(changes, str):
+            return SetParametersResult(successful=False, reason=changes)
         if changes:
             self.cfg = dataclasses.replace(self.cfg, **changes)
             self.router.cfg = self.cfg
@@ -436,21 +388,8 @@ class JointfitNode(Node):
         markers = MarkerArray()
         if name in self._last_outputs:
             stamp, frame, out = self._last_outputs[name]
-            markers.markers.append(
-                covariance_ellipsoid_marker(
-                    stamp, frame, out.position, out.cov, k_sigma=self.cfg.ellipsoid_sigma, ns=f"{name}/covariance",
-                    marker_id=k, lifetime_ns=int(2e9 / max(self.cfg.rviz_rate, 1e-3)),
-                )
-            )
-            if out.direction is not None:
-                length = 2.0 * self.runners[name].estimator.length_scale  # the segments' size
-                markers.markers.append(
-                    axis_arrow_marker(
-                        stamp, frame, out.position, out.direction,
-                        length=length, shaft_diameter=max(length / 40.0, 1e-6), ns=f"{name}/axis", marker_id=k,
-                        lifetime_ns=int(2e9 / max(self.cfg.rviz_rate, 1e-3)),
-                    )
-                )
+            length = 2.0 * self.runners[name].estimator.length_scale  # the segments' size
+            markers.markers = joint_markers(name, k, stamp, frame, out, self.cfg.ellipsoid_sigma, self.cfg.rviz_rate, length)
         if markers.markers:
             self._rviz_pub.publish(markers)
 
@@ -497,23 +436,7 @@ class JointfitNode(Node):
             if note:
                 self.get_logger().info(f"{name}: {note}")
         self._diag_pub.publish(arr)
-        self._log_changes(arr)
-
-    def _log_changes(self, arr: DiagnosticArray) -> None:
-        """Log each status that turned WARN or ERROR (once per condition) and its return to OK."""
-        logger = self.get_logger()
-        for st in arr.status:
-            line = self._status_log.change(st.name, st.level[0], st.message)
-            if line is None:
-                continue
-            level, text = line
-            # (one call site per severity: rclpy refuses to change a call site's severity)
-            if level == ERROR:
-                logger.error(text)
-            elif level == WARN:
-                logger.warning(text)
-            else:
-                logger.info(text)
+        self._status_log.log(((st.name, st.level[0], st.message) for st in arr.status), self.get_logger())
 
     def _graph_problems(self) -> list[str]:
         """Same-name nodes and wrong-type publishers on the inputs (:func:`~jointfit_ros.graph.graph_problems`); logged once each."""

@@ -10,6 +10,8 @@ and its end is logged once when the status is OK again.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
+from typing import Any
 
 __all__ = ["StatusLog", "condition"]
 
@@ -57,3 +59,21 @@ class StatusLog:
         if level == OK and before is not None and before[0] in (WARN, ERROR):
             return OK, f"{name}: OK again: {message}"
         return None
+
+    def log(self, statuses: Iterable[tuple[str, int, str]], logger: Any) -> None:
+        """Log, through ``logger`` (``error``, ``warning``, ``info``), the line of each ``(name, level, message)`` that changed.
+
+        Each status that turned WARN or ERROR is logged once per condition, and its return to OK once.
+        """
+        for name, level, message in statuses:
+            line = self.change(name, level, message)
+            if line is None:
+                continue
+            severity, text = line
+            # (one call site per severity: rclpy refuses to change a call site's severity)
+            if severity == ERROR:
+                logger.error(text)
+            elif severity == WARN:
+                logger.warning(text)
+            else:
+                logger.info(text)

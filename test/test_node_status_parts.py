@@ -73,3 +73,22 @@ def test_freeze_and_save_name_every_joint(tmp_path: Path) -> None:
     assert ok and f"hip: saved {tmp_path / 'hip.yaml'}" in message and (tmp_path / "hip.yaml").exists()
     ok, message = freeze_joints(runners, True)
     assert ok and all(r.estimator.frozen for r in runners), message
+
+
+def test_rviz_markers_are_an_ellipsoid_and_for_a_hinge_an_arrow() -> None:
+    import dataclasses
+
+    from jointfit_core.joint_world import JointOutput
+    from jointfit_ros.rviz_output import joint_markers
+
+    cov = np.diag([4e-6, 1e-6, 9e-6])
+    ball = JointOutput("ball", np.array([1.0, 2.0, 0.5]), cov, None, None, float("nan"))
+    hinge = dataclasses.replace(ball, kind="hinge", direction=np.array([0.0, 0.0, 1.0]), cov_direction=np.eye(3) * 1e-4)
+    (ellipsoid,) = joint_markers("hip", 3, T0, "world", ball, 2.0, 5.0, 0.3)
+    assert ellipsoid.ns == "hip/covariance" and ellipsoid.id == 3 and ellipsoid.header.frame_id == "world"
+    np.testing.assert_allclose([ellipsoid.pose.position.x, ellipsoid.pose.position.y], [1.0, 2.0])
+    # 2 sd of sd (2, 1, 3) mm: diameters 8, 4, 12 mm in some order
+    np.testing.assert_allclose(sorted([ellipsoid.scale.x, ellipsoid.scale.y, ellipsoid.scale.z]), [0.004, 0.008, 0.012])
+    assert ellipsoid.lifetime.sec * 10**9 + ellipsoid.lifetime.nanosec == 400_000_000  # two periods at 5 Hz
+    markers = joint_markers("knee", 4, T0, "world", hinge, 2.0, 5.0, 0.3)
+    assert [m.ns for m in markers] == ["knee/covariance", "knee/axis"]
