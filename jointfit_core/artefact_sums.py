@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from .artefact import NU_MIN
 from .pose import skew
-from .segments import gauge_free_pinv, svd3
+from .segments import gauge_free_pinv, normal_matrix, svd3
 
 __all__ = [
     "N_FEATURE_MOMENTS",
@@ -118,18 +118,9 @@ def feature_sums(Q: FloatArray, t: FloatArray, moments: bool = False) -> FloatAr
     return out
 
 
-def _ball_normal_matrix(n: float, S: FloatArray) -> FloatArray:
-    """``A = [[n I, -S], [-S^T, n I]]`` (6, 6), the normal matrix of Stoddart's eq. 9."""
-    A = np.empty((6, 6))
-    A[:3, :3] = A[3:, 3:] = n * np.eye(3)
-    A[:3, 3:] = -S
-    A[3:, :3] = -S.T
-    return A
-
-
 def ball_parameters(n: float, S: FloatArray, sum_t: FloatArray, sum_qt: FloatArray) -> FloatArray:
     """``(c_p, c_c)`` (6,) of Stoddart's eq. 9 from the sums (no bias compensation)."""
-    out: FloatArray = np.linalg.solve(_ball_normal_matrix(n, S), np.concatenate([sum_t, -sum_qt]))
+    out: FloatArray = np.linalg.solve(normal_matrix(S, n), np.concatenate([sum_t, -sum_qt]))
     return out
 
 
@@ -144,7 +135,7 @@ def ball_parameters_jacobian(n: float, S: FloatArray, sum_t: FloatArray, sum_qt:
     Exact, where the finite differences it replaces cost 30 solves and carried their step's
     rounding (relative ~1e-10).
     """
-    A_inv = np.linalg.inv(_ball_normal_matrix(n, S))
+    A_inv = np.linalg.inv(normal_matrix(S, n))
     x = A_inv @ np.concatenate([sum_t, -sum_qt])
     out = np.empty((6, 15))
     # column 3 i + j: x_c[j] A^-1[:, i] + x_p[i] A^-1[:, 3 + j]
@@ -344,7 +335,7 @@ def _rotation_moments(
         np.einsum("ai,kab,bc->ikc", Ap, SQ, dn_c).reshape(h, -1),
         np.einsum("ai,kba,bc->ikc", Ac, SQ, dn_p).reshape(h, -1),
     ])
-    A = np.block([[n * np.eye(3), -S], [-S.T, n * np.eye(3)]])
+    A = normal_matrix(S, n)
     G = G + cross + cross.T + dn.T @ A @ dn
     # the columns against the residual s_t = Q_t n_c - n_p
     cs = np.concatenate([
@@ -488,7 +479,7 @@ def artefact_from_sums(
     dparams = J_x @ delta  # (m, 108)
     # visible residual energy per unit s^2 (ball normal matrix, centre pair from eq. 9)
     da = ball_jac @ delta
-    A = np.block([[n * np.eye(3), -S], [-S.T, n * np.eye(3)]])
+    A = normal_matrix(S, n)
     absorbed_jk = np.einsum("ik,ij,jk->k", da, A, da)  # (108,)
     var = np.concatenate([_prior_variances(radii[0]) * w[0], _prior_variances(radii[1]) * w[1]])
     vjk = np.repeat(var, 9)

@@ -61,6 +61,7 @@ __all__ = [
     "debiased_sums",
     "first_order_bias_step",
     "gauge_free_pinv",
+    "normal_matrix",
     "noise_bias_matrices",
     "svd3",
     "fit_centre_two_segments",
@@ -470,7 +471,8 @@ def _check_cov6(W: ArrayLike, name: str) -> FloatArray:
     return arr
 
 
-def _normal_matrix(S: FloatArray, n: float) -> FloatArray:
+def normal_matrix(S: FloatArray, n: float) -> FloatArray:
+    """``H = [[n I, -S], [-S^T, n I]]`` (6, 6): the normal matrix of Stoddart et al.'s eq. 9 from ``S = sum Q`` over ``n`` frames."""
     H = np.empty((6, 6))
     H[:3, :3] = n * np.eye(3)
     H[3:, 3:] = n * np.eye(3)
@@ -688,7 +690,7 @@ def centre_from_pose_sums(
     if n < 3:
         raise InputError(f"sums: expected at least 3 frames, got {n:g}")
     S = np.asarray(sums.S)
-    H = _normal_matrix(S, n)
+    H = normal_matrix(S, n)
     g = np.concatenate([sums.sum_t, -np.asarray(sums.sum_qt_t)])
     K = np.asarray(sums.K)
     mo = _motion(S, n, Wp6[:3, :3], (K @ Wc6[:3, :3].ravel()).reshape(3, 3) / n)
@@ -703,7 +705,7 @@ def centre_from_pose_sums(
     if compensate_bias:
         A_p, A_c = noise_bias_matrices(Wp6, Wc6, W_bias)
         S_c, g_c = debiased_sums(sums, A_p, A_c)
-        lam_c, V_c = np.linalg.eigh(_normal_matrix(S_c, n))
+        lam_c, V_c = np.linalg.eigh(normal_matrix(S_c, n))
         if lam_c[0] > SINGULAR_REL * n:  # the corrected normal equations (see Notes)
             H_inv = (V_c / lam_c) @ V_c.T
             a = H_inv @ g_c
