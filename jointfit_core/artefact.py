@@ -49,6 +49,8 @@ __all__ = [
     "check_attachment",
     "deformation_weights",
     "joint_features",
+    "posterior_scale2",
+    "prior_scale2",
     "white_noise_std",
 ]
 
@@ -59,6 +61,15 @@ BoolArray = NDArray[np.bool_]
 ATTACHMENTS = ("skin", "rigid")
 #: Fewest effective degrees of freedom credited to the prior's estimated scale (caps its factor at 3).
 NU_MIN = 3.0
+#: The rigid share of a skin cluster's artefact amplitude, ~75 % (Camomilla et al. 2013; the rest is the
+#: cluster's deformation): the literature prior on the scale expects a rigid motion ``RIGID_SHARE /
+#: sqrt(1 - RIGID_SHARE^2)`` (1.13) times the deformation the pose-fit residuals show (:func:`prior_scale2`).
+RIGID_SHARE = 0.75
+#: Weight of that prior, in effective directions of the residual (eq. A6): one, a weak prior (its 90 % range
+#: of ``s`` spans a factor of ~30, 0.5-16 ``s_0``), against the 2-3.5 directions the data read a ball's scale from
+#: (:func:`_moment_scale`). Enough that a reading far below the prior (a draw whose rigid motion left almost no
+#: residual) no longer gives an estimate many sd off (:func:`posterior_scale2`; ``test/test_sta_scale_prior.py``).
+PRIOR_NU = 1.0
 
 
 def check_attachment(value: object, name: str = "attachment") -> tuple[str, str]:
@@ -205,6 +216,72 @@ def _prior_variances(template: FloatArray) -> FloatArray:
     """
     r2 = float(np.mean(np.sum((template - template.mean(axis=0)) ** 2, axis=1)))
     return np.concatenate([np.full(3, 1.0 / max(r2, 1e-300)), np.ones(3)])
+
+
+def prior_scale2(n_markers: int, feature_ms: float) -> float:
+    """The literature prior's scale ``s_0^2`` per unit of a cluster's deformation variance (eq. A6).
+
+    Parameters
+    ----------
+    n_markers : int
+        Markers of the cluster whose deformation sets the prior (3 or more).
+    feature_ms : float
+        Mean over the frames of ``|f_t|^2``, the centred joint-angle features
+        (:func:`joint_features`; rad^2, squared for the quadratic terms).
+
+    Returns
+    -------
+    float
+        ``rho^2 (3 P - 6) / (5 P F)`` with ``rho = RIGID_SHARE / sqrt(1 - RIGID_SHARE^2)``; 0 (no
+        prior) without movement or with fewer than 3 markers.
+
+    Notes
+    -----
+    A deformation with no rigid part, of mean square ``a_d^2`` per marker, leaves the pose-fit residual
+    variance ``w = a_d^2 P / (3 P - 6)`` per degree of freedom (the weights of
+    :func:`deformation_weights`); a rigid cluster motion of the prior (:func:`_prior_variances`) at
+    scale ``s`` moves a marker by ``5 s^2 w F`` in mean square (3 translation components, and 2 of the
+    turn's 3 at the cluster's rms radius, per unit feature, times the features' mean square ``F``).
+    Equating that with ``rho^2 a_d^2`` gives ``s_0^2 = rho^2 (3 P - 6) / (5 P F)`` in the units of ``w``
+    (``test/test_sta_scale_prior.py`` draws both).
+    """
+    if n_markers < 3 or not feature_ms > 0.0:
+        return 0.0
+    rho2 = RIGID_SHARE**2 / (1.0 - RIGID_SHARE**2)
+    return float(rho2 * (3 * n_markers - 6) / (5.0 * n_markers * feature_ms))
+
+
+def _t_widened(scale2: float, nu: float) -> float:
+    """``scale2 nu / (nu - 2)`` with ``nu`` at least :data:`NU_MIN` (eq. A5; ``nu`` infinite: unchanged)."""
+    if not np.isfinite(nu):
+        return scale2
+    nu = max(nu, NU_MIN)
+    return scale2 * nu / (nu - 2.0)
+
+
+def posterior_scale2(scale2: float, nu: float, prior2: float) -> tuple[float, float]:
+    """The artefact scale ``s^2`` read on ``nu`` effective directions, combined with the literature prior (eq. A6).
+
+    Parameters
+    ----------
+    scale2 : float
+        The data's reading of ``s^2`` (:func:`_moment_scale`, or the sums' readings).
+    nu : float
+        Its effective degrees of freedom (``inf``: the data fix it).
+    prior2 : float
+        The prior's ``s_0^2`` in the same units (:func:`prior_scale2` times the weight); 0: no prior.
+
+    Returns
+    -------
+    scale2, nu : float
+        The posterior's ``(PRIOR_NU s_0^2 + nu s^2) / (PRIOR_NU + nu)`` and ``PRIOR_NU + nu``
+        (scaled-inverse-chi-square prior, conjugate); the reading unchanged without a prior or when
+        ``nu`` is not finite.
+    """
+    if not prior2 > 0.0 or not np.isfinite(nu) or not np.isfinite(prior2):
+        return scale2, nu
+    nu = max(nu, 0.0)
+    return (PRIOR_NU * prior2 + nu * scale2) / (PRIOR_NU + nu), PRIOR_NU + nu
 
 
 def _integrated_time(z: FloatArray) -> tuple[float, int]:
@@ -392,22 +469,31 @@ def artefact_covariance(
     0.92, median 0.42-0.47, e/3 > 3 in 5-6 % of the trials; without the factor
     the mean is 2.4-3.3, as ``nu / (nu - 2) ~ 3`` predicts.
 
-    **Not used: an informative prior on the scale (eq. A6).** With ``s^2 ~``
+    **A weak literature prior on the scale (eq. A6).** With ``s^2 ~``
     scaled-inverse-chi-square ``(nu_0, s_0^2)`` the posterior is conjugate,
-    ``(nu_0 + nu, (nu_0 s_0^2 + nu s_hat^2) / (nu_0 + nu))``, and the factor
-    becomes ``(nu_0 + nu) / (nu_0 + nu - 2)``. In the units of the weights
+    ``(nu_0 + nu, (nu_0 s_0^2 + nu s_hat^2) / (nu_0 + nu))`` (:func:`posterior_scale2`),
+    and the factor becomes ``(nu_0 + nu) / (nu_0 + nu - 2)``. In the units of the weights
     (:func:`deformation_weights`) a literature prior is ``s_0^2 = rho^2 (3 P - 6)
-    / (5 P F)``: ``rho`` the rigid-to-deformation amplitude ratio (rigid ~75 %
+    / (5 P F)`` (:func:`prior_scale2`): ``rho`` the rigid-to-deformation amplitude ratio (rigid ~75 %
     of the artefact, Camomilla et al. 2013: ``rho = 0.75 / sqrt(1 - 0.75^2)``),
     ``5 s^2 w`` the mean square marker motion per unit feature under
     :func:`_prior_variances`, ``w ~ a_d^2 P / (3 P - 6)`` the pose-fit residual
     variance of a deformation of rms amplitude ``a_d`` on ``P`` markers, ``F``
-    the features' mean square; ``nu_0 ~ 5``
-    makes the thigh's 10-30 mm (Leardini et al. 2005) the 90 % range of ``s``.
-    On the hip with 10 mm of thigh artefact it gives mean e/3 0.90 with
-    ``nu ~ 8`` (20 trials), but it asserts a rigid part that may be absent:
-    the deformation-only artefact gives mean e/3 0.0002 and the wobble not tied
-    to the angles 0.08, because this prior has almost no mass near ``s = 0``.
+    the features' mean square; the prior is set by the cluster with the larger weight.
+    ``nu_0 =`` :data:`PRIOR_NU` ``= 1``. Why: the reading from ``nu ~ 2-3.5`` directions
+    has a heavy lower tail, and a trial whose rigid motion happened to leave little
+    residual read its scale tens of times below the others and was called identifiable
+    many sd off: on the hip of ``bench/sta.py`` (30 seeded trials, 10 mm of thigh
+    artefact, 25 deg) one trial read ``s_hat^2 / s_0^2 = 0.024`` (the median trial 0.71)
+    and was 20 mm off with an sd of 5.5 mm (e/3 = 24.7); at 8 deg of range one was 54 mm
+    off with an sd of 10 mm (e/3 = 72). With the prior these are e/3 3.3 and 3.0. The cost
+    is caution where the prior's premise fails: an artefact with no rigid part (the
+    deformation-only case) or one not tied to the angles (wobble) has the rigid motion
+    the prior expects from its deformation added (mean e/3 ~2e-4 and ~0.09 on
+    ``bench/sta.py``, were 0.23 and 0.71); skin clusters in vivo move mostly rigidly
+    (Camomilla et al. 2013), so that is the side to err on. ``nu_0 = 2`` (tried) gave the
+    same tails with more caution, ``nu_0 ~ 5`` the deformation-only case 0.0002 and the
+    hips' mean e/3 0.90 with ``nu ~ 8`` (20 trials).
     """
     n, k, _ = J.shape
     Lw = np.linalg.cholesky(0.5 * (W + np.swapaxes(W, 1, 2)))
@@ -449,8 +535,12 @@ def artefact_covariance(
         z_rem = zf - U @ u
         # A scale read from nu effective directions: the estimate's error over the estimated covariance is
         # F(3, nu)-like, whose mean is nu / (nu - 2) times the known-scale value (eq. A5); nu >= NU_MIN.
-        nu = max(nu, NU_MIN)
-        scale2 *= nu / (nu - 2.0)
+        # With the literature prior tied to the deforming cluster's residual (eq. A6) where that is more
+        # cautious: a cluster that does not deform (a plate) says nothing about its rigid motion.
+        big = int(np.argmax(np.asarray(weights, dtype=np.float64)))
+        feature_ms = float(np.mean(np.sum(features**2, axis=1)))
+        post2, nu_post = posterior_scale2(scale2, nu, prior_scale2(templates[big].shape[0], feature_ms))
+        scale2 = max(_t_widened(scale2, nu), _t_widened(post2, nu_post))
     artefact = scale2 * cov_unit
     zr = z_rem.reshape(n, k)
     tau, window = _integrated_time(zr)

@@ -154,6 +154,10 @@ class JointEstimate:
         """The rms radii of the parent's and the child's templates (input units; here (0, 0): none)."""
         return (0.0, 0.0)
 
+    def _marker_counts(self) -> tuple[int, int]:
+        """The parent's and the child's marker counts (here (4, 4), the usual cluster: not known)."""
+        return (4, 4)
+
     @property
     def length_scale(self) -> float:
         """The larger rms radius of the two templates (input units; 0 until they exist)."""
@@ -368,6 +372,7 @@ class JointEstimate:
             version=self._version,
             attachment=self.attachment,
             radii=self._radii(),
+            n_markers=self._marker_counts(),
         )
 
     def is_current(self, request: SolveRequest) -> bool:

@@ -92,6 +92,10 @@ class JointSegments(JointEstimate):
         assert self._pose is not None
         return (self._pose.parent.rms_radius, self._pose.child.rms_radius)
 
+    def _marker_counts(self) -> tuple[int, int]:
+        """The parent's and the child's marker counts ((4, 4) until the first frame gives them)."""
+        return (4, 4) if self.n_markers is None else self.n_markers
+
     @property
     def gated_frames(self) -> tuple[int, int]:
         """Frames in which the parent and the child failed the outlier gate (held out whole or in part)."""

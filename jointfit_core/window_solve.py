@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from .artefact import deformation_weights
 from .artefact_sums import (
     SumsArtefact,
     artefact_from_sums,
@@ -209,6 +210,8 @@ class SolveRequest:
         soft-tissue part (:func:`~jointfit_core.artefact_sums.artefact_from_sums`).
     radii : (float, float)
         The two templates' rms radii, input units.
+    n_markers : (int, int)
+        Marker counts of the parent and the child (the soft-tissue prior's, :func:`~jointfit_core.artefact.prior_scale2`).
     """
 
     kind: str
@@ -221,6 +224,7 @@ class SolveRequest:
     version: int
     attachment: tuple[str, str] = ("rigid", "rigid")
     radii: tuple[float, float] = (0.0, 0.0)
+    n_markers: tuple[int, int] = (4, 4)
 
 
 @dataclass(frozen=True, eq=False)
@@ -335,7 +339,11 @@ def solve_window(request: SolveRequest) -> SolveResult:
             rot = [rotation_residual_sums(sums, node, n_p, n_c) for _, node in nodes]
             rotation_ss = rot[0][0]
             rotation_smooth = smooth_energy_from_lags([g for _, g in rot], counts, lags, rotation_ss, float(sums.n))
-    art = _sums_artefact(request, sums, sol, (c_p, c_c), smooth, rotation_smooth, rotation_ss)
+    assert white is not None
+    art = _sums_artefact(
+        request, sums, sol, (c_p, c_c), smooth, rotation_smooth, rotation_ss,
+        deformation_weights((sigma_p, sigma_c), white, request.attachment),
+    )
     window_s = float(sums.n) * dt if dt > 0.0 else float(sums.n) / NOMINAL_RATE_HZ
     total = _movement_verdict(_with_artefact(sol, art.cov), float(request.sums[_MOVE]), window_s)
     return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale, white)
@@ -384,8 +392,13 @@ def _sums_artefact(
     smooth: float,
     rotation_smooth: float = 0.0,
     rotation_ss: float = 0.0,
+    deformation: tuple[float, float] = (0.0, 0.0),
 ) -> SumsArtefact:
-    """The soft-tissue covariance of a window's estimate (skin segments weighted equally)."""
+    """The soft-tissue covariance of a window's estimate (skin segments weighted equally).
+
+    ``deformation``: each segment's deformation variance (:func:`~jointfit_core.artefact.deformation_weights`),
+    whose larger sets the literature prior on the scale, with that segment's marker count.
+    """
     n = float(sums.n)
     S, st, sqt = np.asarray(sums.S), np.asarray(sums.sum_t), np.asarray(sums.sum_qt_t)
     weights = (float(request.attachment[0] == "skin"), float(request.attachment[1] == "skin"))
@@ -406,6 +419,7 @@ def _sums_artefact(
     return artefact_from_sums(
         fs, n, S, st, sqt, solver, centres, request.radii, weights, smooth, directions,
         rotation_smooth, rotation_ss, jacobian,
+        deformation=max(deformation), n_markers=request.n_markers[int(np.argmax(deformation))],
     )
 
 
