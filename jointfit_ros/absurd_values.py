@@ -125,10 +125,17 @@ class MarkerScreen:
         or a marker farther from its segment's visible markers' mean than
         ``scale`` (input units; 0: no templates yet, no such test). One such
         marker drags the mean of its segment, so its neighbours may go with it
-        in that frame: the segment is then not posed there.
+        in that frame: the segment is then not posed there. Without templates
+        and without a workspace, a coordinate beyond :data:`ABSURD_OUTPUT` is
+        absurd: the template frames' shape test squares it (a finite 1e160 or
+        1e299 from a driver overflowed it, raised from the frame callback and
+        left the joint without an estimate for the rest of the session).
         """
-        if not math.isfinite(limit) and self.compact(frames, scale):
-            return frames, 0
+        if not math.isfinite(limit):
+            if self.compact(frames, scale):
+                return frames, 0
+            if not scale > 0.0:
+                limit = ABSURD_OUTPUT
         out = self._absurd(frames, limit, scale)
         if out is None or not out.any():
             return frames, 0

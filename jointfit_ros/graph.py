@@ -1,4 +1,4 @@
-"""Who else is on the ROS graph: a second node of the same name, a publisher of the wrong type.
+"""Who else is on the ROS graph: a second node of the same name, a publisher of the wrong type, a second publisher.
 
 Pure functions of what rclpy's graph queries return, so that they are tested
 without ROS. ROS 2 does not keep node names unique: a second ``jointfit``
@@ -6,6 +6,11 @@ started with the same name and namespace publishes every output again and
 answers the same services (two ``~/save`` writing the same files). A
 publisher of another message type on the marker topic never delivers a
 message to the node, which would otherwise only say "waiting for markers".
+Two publishers of an input topic (a mocap driver started twice, a replay
+beside the live driver) interleave their frames into what the node takes for
+one stream at twice the rate: every joint mixes two subjects' (or two
+sessions') frames, and the node would otherwise only say that frames are
+missing and that the joint test rejects a third of them.
 """
 
 from __future__ import annotations
@@ -35,8 +40,9 @@ def graph_problems(
     me : (str, str)
         This node's name and namespace.
     publisher_types : mapping of str to iterable of str
-        Per input topic, the message types of its publishers
-        (``Node.get_publishers_info_by_topic``), e.g. ``geometry_msgs/msg/PoseArray``.
+        Per input topic, the message type of each of its publishers
+        (``Node.get_publishers_info_by_topic``), e.g. ``geometry_msgs/msg/PoseArray``;
+        more than one of the expected type is a problem too.
     expected_types : mapping of str to str
         Per input topic, the type this node subscribes with.
     """
@@ -53,5 +59,11 @@ def graph_problems(
             problems.append(
                 f"{topic} has publishers of {', '.join(others)}, which this node cannot read (it expects {wanted}); "
                 "their messages never arrive: set marker_type or fix the publisher"
+            )
+        same = sum(1 for t in publisher_types.get(topic, ()) if t == wanted)
+        if same > 1:
+            problems.append(
+                f"{topic} has {same} publishers of {wanted}: their messages interleave into one stream that the "
+                "joints cannot tell apart (a driver started twice, or a replay beside the live driver); stop all but one"
             )
     return problems

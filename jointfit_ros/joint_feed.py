@@ -35,7 +35,7 @@ from jointfit_core.estimator import (
 from jointfit_core.hinge_from_sums import PoseSumsAxis
 from jointfit_core.segments import AXIS_SD_MAX_DEG, SD_REL_MAX, PoseSumsCentre
 
-from .absurd_values import ABSURD_RADII, MarkerScreen, output_sane, workspace_limit
+from .absurd_values import ABSURD_OUTPUT, ABSURD_RADII, MarkerScreen, output_sane, workspace_limit
 from .axis_convention import AxisConvention
 from .joint_calibration import JointCalibration
 from .live_geometry import LiveGeometry
@@ -314,11 +314,17 @@ class JointFeed:
         return np.concatenate([markers, np.stack([chain.get(n, nan) for n in names])])
 
     def pose(self, source: int, stamp_ns: int, R: FloatArray, d: FloatArray) -> JointOutput | None:
-        """A rigid-body pose of the parent (``source`` 0) or the child (1), as virtual markers."""
+        """A rigid-body pose of the parent (``source`` 0) or the child (1), as virtual markers.
+
+        A position beyond the workspace (without one: beyond :data:`~jointfit_ros.absurd_values.ABSURD_OUTPUT`
+        input units, as the outputs) is dropped and counted: a finite 1e299 from a driver entered the
+        window's sums as inf, and the joint stayed without an estimate until it left the window.
+        """
         assert self._virtual is not None
-        if not np.abs(d).max() <= workspace_limit(self.node):
+        limit = workspace_limit(self.node)
+        if not np.abs(d).max() <= (limit if math.isfinite(limit) else ABSURD_OUTPUT):
             self.counters["absurd_markers"] += 1
-            self.last_error = f"pose dropped: position {d.tolist()} beyond the workspace"
+            self.last_error = f"pose dropped: position {d.tolist()} beyond the workspace (or absurd without one)"
             return None
         return self._paired(source, stamp_ns, self._virtual @ R.T + d, None)
 

@@ -81,13 +81,18 @@ def runtime_changes(params: list[Parameter]) -> dict[str, Any] | str:
 
     Read-only parameters are left out (rclpy refuses them itself); the first value that fails
     :func:`~jointfit_ros.params.check_value` refuses the whole request (its message, naming the
-    parameter, is returned).
+    parameter, is returned). So is a value of type NOT_SET (``ros2 param delete``): the
+    parameters are declared with dynamic typing, so rclpy would accept it and undeclare the
+    parameter, while :func:`~jointfit_ros.params.check_value` reads ``None`` as "the default":
+    the node would silently go back to the default and no later change could be set.
     """
     specs = {s.name: s for s in NODE_PARAMS}
     changes: dict[str, Any] = {}
     for p in params:
         if p.name not in RUNTIME_PARAMS:
             continue
+        if p.type_ == Parameter.Type.NOT_SET:
+            return f"{p.name}: cannot be unset (deleted) while the node runs; set a value instead"
         try:
             changes[p.name] = check_value(specs[p.name], p.value, p.name)
         except ConfigError as exc:

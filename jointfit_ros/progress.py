@@ -22,7 +22,9 @@ __all__ = ["coverage_values", "done_check", "estimate_sd"]
 
 
 def _percent(fraction: float) -> float:
-    return round(100.0 * fraction, 1)
+    # float(): a numpy float's round() stays numpy, whose repr in a list ("[np.float64(100.0), ...]")
+    # is what the diagnostic value showed
+    return round(100.0 * float(fraction), 1)
 
 
 def coverage_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis) -> tuple[float, dict[str, Any]]:

@@ -218,8 +218,15 @@ class Timeline:
         return t
 
     def _extend_run(self, source: str, stamp_ns: int) -> bool:
-        """Add an off-line stamp to the source's run; True when the run is long enough for a restart."""
+        """Add an off-line stamp to the source's run; True when the run is long enough for a restart.
+
+        A stamp repeating the run's latest neither extends nor breaks it: a stream that stamps
+        some frames alike (two frames per stamp) would otherwise never make a run, and after a
+        jump (ahead, or back: a loop) every message would be dropped for good.
+        """
         run = self._runs.get(source)
+        if run is not None and stamp_ns == run.last:
+            return False
         if run is not None and 0 < stamp_ns - run.last <= self.max_jump_ns:
             run.last = stamp_ns
             run.count += 1

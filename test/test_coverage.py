@@ -84,3 +84,23 @@ def test_frozen_estimate_has_no_motion_part() -> None:
     assert isinstance(sol, PoseSumsAxis) and sol.identifiable
     cov = joint_coverage(sol, est.length_scale)
     assert cov.motion is None and cov.overall == cov.estimate == 1.0
+
+
+def test_coverage_values_are_plain_numbers_in_diagnostics() -> None:
+    """``coverage by direction (%)`` reads as a list of numbers in /diagnostics, not of numpy reprs."""
+    pytest.importorskip("rclpy")
+    from jointfit_ros.conversions import diagnostic_status
+    from jointfit_ros.progress import coverage_values
+
+    rng = np.random.default_rng(5)
+    motion = two_segment_motion(rng, kind="ball")
+    t = np.arange(1500) / 100.0
+    parent, child = motion.markers_at(t)
+    est = OnlineJoint("ball", window=1500, template_frames=20)
+    est.update_many(parent + rng.normal(0, 1.0, parent.shape), child + rng.normal(0, 1.0, child.shape), t)
+    _, values = coverage_values(est, est.estimate())
+    by_direction = values["coverage by direction (%)"]
+    assert len(by_direction) == 3 and all(type(v) is float for v in by_direction), by_direction
+    text = {kv.key: kv.value for kv in diagnostic_status("jointfit: hip", 0, "", values).values}
+    assert "np." not in text["coverage by direction (%)"], text
+    assert [float(v) for v in text["coverage by direction (%)"].strip("[]").split(",")] == by_direction

@@ -26,6 +26,18 @@ def test_graph_problems_name_twins_and_wrong_types() -> None:
     assert len(wrong) == 1 and "publishers of sensor_msgs/msg/PointCloud2" in wrong[0]
 
 
+def test_graph_problems_name_two_publishers_of_an_input() -> None:
+    """Two drivers on /markers interleave two streams into one: said, not only seen as missed frames and rejections."""
+    me = ("jointfit", "/")
+    pose_array = "geometry_msgs/msg/PoseArray"
+    two = graph_problems([me], me, {"/markers": [pose_array, pose_array], "/pelvis": ["geometry_msgs/msg/PoseStamped"]},
+                         {"/markers": pose_array, "/pelvis": "geometry_msgs/msg/PoseStamped"})
+    assert len(two) == 1 and two[0].startswith("/markers has 2 publishers of geometry_msgs/msg/PoseArray"), two
+    poses = graph_problems([me], me, {"/pelvis": ["geometry_msgs/msg/PoseStamped"] * 3},
+                           {"/pelvis": "geometry_msgs/msg/PoseStamped"})
+    assert len(poses) == 1 and "/pelvis has 3 publishers" in poses[0], poses
+
+
 @pytest.mark.ros
 def test_node_reports_a_twin_and_a_wrong_type_publisher(tmp_path: Path) -> None:
     rclpy = pytest.importorskip("rclpy")

@@ -104,6 +104,25 @@ def test_a_steady_run_far_ahead_is_adopted_without_an_offset() -> None:
     assert tl.counters["timeline_restarts"] == 1 and tl.offset_ns == 0
 
 
+@pytest.mark.parametrize("where", [-50 * S, 100 * S])
+def test_a_run_with_repeated_stamps_still_restarts_the_time_line(where: int) -> None:
+    """A stream stamping its frames in pairs, after a loop back or a jump ahead, is taken up again.
+
+    Before, a repeated stamp started the run anew, so no run ever reached RESTART_FRAMES messages:
+    every later message was dropped for good (stamps_ahead, or stamp_not_increasing in the estimators).
+    """
+    tl = Timeline(S)
+    for s in _stamps(100 * S, 10):
+        tl.time_of(s, "m")
+    pairs = [s for s in _stamps(100 * S + where, 20) for _ in range(2)]
+    out = [tl.time_of(s, "m") for s in pairs]
+    assert tl.counters["timeline_restarts"] == 1, tl.counters
+    taken = [t for t in out[2 * RESTART_FRAMES :] if t is not None]
+    assert len(taken) == len(pairs) - 2 * RESTART_FRAMES
+    assert (np.diff(np.array(taken)) >= 0).all()  # on one increasing time line again
+    assert taken[-1] - taken[0] == (20 - 1 - RESTART_FRAMES) * STEP  # the stream's own steps
+
+
 def test_with_a_clock_a_pause_is_no_jump() -> None:
     now = [0]
     tl = Timeline(S, clock=lambda: now[0])
