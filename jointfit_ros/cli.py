@@ -302,7 +302,7 @@ def fit_main(argv: Sequence[str]) -> int:
                 doc = node_calibration(
                     [calibrations[j.name] for j in cfg.joints if j.name in calibrations],
                     node=node_path(opts.node_name) if opts.node_name else "",
-                    units=cfg.units,
+                    units=length_unit(run),  # the numbers' unit: a C3D's or TRC's own, not the units parameter
                     segment_labels=cfg.segment_labels(),
                 )
                 installed.append(str(save_node_calibration(calibration_path(cfg.calibration_file), doc)))

@@ -361,3 +361,26 @@ def test_console_entry_point(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("right_knee (hinge): direction_parent (")
     assert (tmp_path / "knee_jointfit" / "right_knee.calibration.yaml").exists()
+
+
+def test_write_calibration_node_file_records_the_recording_unit(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A TRC in mm fitted with the default ``units: m``: the node file says mm, as its numbers are.
+
+    It said ``units: m`` (the parameter) over millimetre numbers, so a node in metres would take
+    it as its own and a reader would scale every length by 1000.
+    """
+    from jointfit_core.node_calibration import load_node_calibration
+
+    frames, _ = recording
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))
+    node_file = tmp_path / "installed" / "subject.yaml"
+    config = _config(tmp_path / "params.yaml", extra=f'    calibration_file: "{node_file}"\n')
+    config.write_text(config.read_text().replace(f'calibration_file: "{tmp_path / "installed" / "hip.yaml"}"', ""))
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "o", "--no-report", "--write-calibration")
+    assert code == 0 and f"installed calibration {node_file}" in stdout, stdout
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["length_unit"] == "mm"
+    assert load_node_calibration(node_file)["units"] == "mm"
