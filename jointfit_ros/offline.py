@@ -421,6 +421,8 @@ def _bag_events(
 def _marker_events(run: FitRun, data: MarkerData, step: int) -> Generator[int, None, None]:
     """Give the frames of a marker file to every joint in blocks; yields the number of frames of each."""
     frames = data.select(run.cfg.marker_names)
+    if run.cfg.zero_is_missing:  # TRC exporters write gaps as 0 0 0 too (read_c3d makes them NaN already)
+        frames[(frames == 0.0).all(axis=2)] = np.nan
     stamps_ns = np.rint((data.first_frame + np.arange(data.n_frames)) / data.rate * 1e9).astype(np.int64)
     run.frames = frames
     run.stamps = stamps_ns.astype(np.float64) * 1e-9

@@ -384,3 +384,31 @@ def test_write_calibration_node_file_records_the_recording_unit(
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["length_unit"] == "mm"
     assert load_node_calibration(node_file)["units"] == "mm"
+
+
+def test_trc_gaps_written_as_zeros_are_missing_markers(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A TRC whose occluded markers are 0 0 0 (as some exporters write gaps) fits as with empty cells.
+
+    ``zero_is_missing`` (default) holds for TRC as for C3D and the node: the zeros used to be taken
+    as marker positions, so the gate rejected those frames and the exit status said to look for
+    swapped labels, while the same file converted to a bag gave the estimate of the gaps.
+    """
+    frames, _ = recording
+    assert np.isnan(frames).any()  # the recording has occlusions
+    names = tuple(marker_names(0))
+    blank, zeros = tmp_path / "blank.trc", tmp_path / "zeros.trc"
+    write_trc(blank, MarkerData(frames, names, RATE, "mm"))
+    write_trc(zeros, MarkerData(np.nan_to_num(frames, nan=0.0), names, RATE, "mm"))
+    config = _config(tmp_path / "params.yaml")
+    results = []
+    for trc in (blank, zeros):
+        code, stdout, stderr = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / trc.stem, "--no-report")
+        assert code == 0, stdout + stderr
+        results.append(json.loads((tmp_path / trc.stem / "summary.json").read_text())["joints"])
+    for a, b in zip(*results, strict=True):
+        assert a["gated"] == b["gated"] and a["frames_in_window"] == b["frames_in_window"]
+        for key in ("centre_parent", "cov_parent", "direction_parent", "point_parent"):
+            if key in a:
+                np.testing.assert_allclose(b[key], a[key], rtol=1e-9, atol=1e-12)
