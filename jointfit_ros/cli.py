@@ -190,6 +190,8 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
     verdict = "" if joint["identifiable"] else f"; NOT identifiable: {joint['reason']}"
     if joint.get("gate_warning"):
         verdict += f"; WARNING: {joint['gate_warning']}"
+    if joint.get("units_warning"):
+        verdict += f"; WARNING: {joint['units_warning']}"
     if joint.get("consistency_warning"):
         verdict += f"; WARNING: {joint['consistency_warning']}"
     gated = joint["gated"]

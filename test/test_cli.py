@@ -412,3 +412,25 @@ def test_trc_gaps_written_as_zeros_are_missing_markers(
         for key in ("centre_parent", "cov_parent", "direction_parent", "point_parent"):
             if key in a:
                 np.testing.assert_allclose(b[key], a[key], rtol=1e-9, atol=1e-12)
+
+
+def test_recording_in_the_wrong_unit_is_flagged(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """Millimetre markers in a TRC that declares metres: a units warning, not a silent 1000x fit.
+
+    The node warns about such a stream (``units``); the fit wrote a calibration and a URDF with
+    thigh clusters tens of metres wide and said nothing. (The exit status stays that of the fit.)
+    """
+    frames, _ = recording
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "m"))
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", _config(tmp_path / "params.yaml"), "--out", tmp_path / "o", "--no-report")
+    assert code == 0
+    assert stdout.count("WARNING: marker clusters are") == 2 and "looks like mm" in stdout
+    joints = json.loads((tmp_path / "o" / "summary.json").read_text())["joints"]
+    assert all("implausible for units 'm'" in j["units_warning"] for j in joints)
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))  # the same numbers, declared right
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", _config(tmp_path / "params.yaml"), "--out", tmp_path / "p", "--no-report")
+    assert code == 0 and "WARNING" not in stdout
+    assert all(j["units_warning"] == "" for j in json.loads((tmp_path / "p" / "summary.json").read_text())["joints"])
