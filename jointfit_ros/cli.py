@@ -24,8 +24,8 @@ the file's labels are the marker names), and writes to ``DIR`` (default
   joint's ``calibration_file``, or pass ``--write-calibration`` to write it
   there, keeping the previous file as ``.bak``; with the node's
   ``calibration_file`` the identified joints all go to that one file,
-  :mod:`jointfit_core.node_calibration`); written only for joints with
-  an identifiable estimate;
+  :mod:`jointfit_core.node_calibration`, where a joint not identified keeps
+  its previous entry); written only for joints with an identifiable estimate;
 * ``summary.json``: estimates in the parent and child segment frames, their
   covariances and standard deviations, residuals, verdicts and counters;
 * ``<joint>.png``: the report figure (:mod:`jointfit_ros.report`), unless
@@ -61,16 +61,21 @@ import json
 import math
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
 from jointfit_core import __version__
 from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
-from jointfit_core.errors import JointfitError
+from jointfit_core.errors import InputError, JointfitError
 from jointfit_core.io import METRES_PER_UNIT
-from jointfit_core.node_calibration import node_calibration, save_node_calibration
+from jointfit_core.node_calibration import (
+    load_node_calibration,
+    node_calibration,
+    save_node_calibration,
+    segment_key,
+)
 from jointfit_core.urdf import urdf_from_calibrations
 
 from .angles_export import joint_angles_csv
@@ -78,8 +83,9 @@ from .export import EXPORT_FORMATS, check_exportable, export_files
 from .html_report import html_page
 from .naming import node_path
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, read_marker_file, run_fit, with_file_marker_names
-from .params import calibration_path, node_config, params_from_file
+from .params import NodeConfig, calibration_path, node_config, params_from_file
 from .report import fit_summary, joint_reports, length_unit
+from .runner import JointRunner
 
 __all__ = ["main", "fit_main"]
 
@@ -226,6 +232,54 @@ def _anatomy_text(joint: dict[str, Any]) -> str:
     return out
 
 
+def _previous_entries(
+    path: Path, cfg: NodeConfig, units: str, fresh: Mapping[str, Any]
+) -> dict[str, dict[str, Any]]:
+    """The node calibration file's entries of the configured joints the fit did not identify, that a node would load.
+
+    As the node's ``~/save`` keeps a joint's previous entry when it cannot save it
+    (:class:`~jointfit_ros.calibration_store.NodeCalibrationFile`): without this, a fit of a
+    recording that identifies the knee only dropped the hip's entry from the file.
+
+    Parameters
+    ----------
+    path : Path
+        The node's ``calibration_file``.
+    cfg : NodeConfig
+    units : str
+        The fit's length unit: a file in another unit keeps nothing.
+    fresh : mapping
+        The joints identified by the fit (their entries are replaced).
+
+    Returns
+    -------
+    dict
+        Joint name to its previous calibration; empty when the file is absent or not loadable as a whole.
+    """
+    if not path.is_file():
+        return {}
+    try:
+        doc = load_node_calibration(path)
+    except (JointfitError, OSError, UnicodeDecodeError):
+        return {}
+    if doc["units"] != units:
+        return {}
+    kept: dict[str, dict[str, Any]] = {}
+    for joint in cfg.joints:
+        entry = doc["joints"].get(joint.name)
+        if joint.name in fresh or entry is None:
+            continue
+        problem = ""
+        try:
+            segment_key(entry["calibration"], "parent"), segment_key(entry["calibration"], "child")
+        except InputError as exc:
+            problem = str(exc)
+        check = JointRunner(joint, cfg)  # every check of the node's load (record, kind, version, identifiable)
+        if check.restore(entry["calibration"], f"file {path} (joint {joint.name})", str(path), problem):
+            kept[joint.name] = entry["calibration"]
+    return kept
+
+
 def fit_main(argv: Sequence[str]) -> int:
     """Run ``jointfit fit`` (see the module docstring); returns the exit status."""
     try:
@@ -301,13 +355,16 @@ def fit_main(argv: Sequence[str]) -> int:
         installed = []
         if opts.write_calibration:
             if cfg.calibration_file and calibrations:  # the node's one file: every identified joint
+                node_file = calibration_path(cfg.calibration_file)
+                previous = _previous_entries(node_file, cfg, length_unit(run), calibrations)
                 doc = node_calibration(
-                    [calibrations[j.name] for j in cfg.joints if j.name in calibrations],
+                    [calibrations.get(j.name) or previous[j.name] for j in cfg.joints if j.name in {**calibrations, **previous}],
                     node=node_path(opts.node_name) if opts.node_name else "",
                     units=length_unit(run),  # the numbers' unit: a C3D's or TRC's own, not the units parameter
                     segment_labels=cfg.segment_labels(),
                 )
-                installed.append(str(save_node_calibration(calibration_path(cfg.calibration_file), doc)))
+                installed.append(str(save_node_calibration(node_file, doc)))
+                installed += [f"{name}: not identified here, its entry is kept ({node_file})" for name in previous]
             for j in cfg.joints:
                 if j.name in calibrations and j.calibration_file:
                     installed.append(str(save_calibration(calibration_path(j.calibration_file), calibrations[j.name])))
@@ -324,7 +381,7 @@ def fit_main(argv: Sequence[str]) -> int:
               + (f", {len(figures)} figure(s)" if figures else "") + (", report.html" if opts.html else "")
               + "".join(f", {name}" for name in exported) + ")")
         for path in installed:
-            print(f"installed calibration {path}")
+            print(path if ": not identified here" in path else f"installed calibration {path}")
     warned = any(j.get("gate_warning") for j in summary["joints"])
     return 0 if len(calibrations) == len(run.traces) and not warned else 3
 

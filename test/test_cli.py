@@ -434,3 +434,35 @@ def test_recording_in_the_wrong_unit_is_flagged(
     code, stdout, _ = _fit(capsys, "fit", trc, "--config", _config(tmp_path / "params.yaml"), "--out", tmp_path / "p", "--no-report")
     assert code == 0 and "WARNING" not in stdout
     assert all(j["units_warning"] == "" for j in json.loads((tmp_path / "p" / "summary.json").read_text())["joints"])
+
+
+def test_write_calibration_keeps_the_node_file_entry_of_a_joint_not_identified(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A second fit that identifies the knee only keeps the hip's entry in the node file, as ``~/save`` does.
+
+    It wrote the identified joints only, so the hip's calibration left the file (and, with the next
+    fit, its ``.bak``).
+    """
+    from jointfit_core.node_calibration import load_node_calibration
+
+    frames, _ = recording
+    names = tuple(marker_names(0))
+    node_file = tmp_path / "installed" / "subject.yaml"
+    config = _config(tmp_path / "params.yaml", extra=f'    calibration_file: "{node_file}"\n')
+    config.write_text(config.read_text().replace(f'calibration_file: "{tmp_path / "installed" / "hip.yaml"}"', ""))
+    first = tmp_path / "both.trc"
+    write_trc(first, MarkerData(frames, names, RATE, "mm"))
+    code, _, _ = _fit(capsys, "fit", first, "--config", config, "--out", tmp_path / "o1", "--no-report", "--write-calibration")
+    assert code == 0
+    no_pelvis = frames.copy()
+    no_pelvis[:, [k for k, n in enumerate(names) if n.startswith("PELV")]] = np.nan  # the hip cannot be estimated
+    second = tmp_path / "knee_only.trc"
+    write_trc(second, MarkerData(no_pelvis, names, RATE, "mm"))
+    code, stdout, _ = _fit(capsys, "fit", second, "--config", config, "--out", tmp_path / "o2", "--no-report", "--write-calibration")
+    assert code == 3 and not (tmp_path / "o2" / "hip.calibration.yaml").exists()
+    assert f"hip: not identified here, its entry is kept ({node_file})" in stdout, stdout
+    doc = load_node_calibration(node_file)
+    assert list(doc["joints"]) == ["hip", "knee"]
+    assert doc["joints"]["hip"]["calibration"] == load_calibration(tmp_path / "o1" / "hip.calibration.yaml")
+    assert doc["joints"]["knee"]["calibration"] == load_calibration(tmp_path / "o2" / "knee.calibration.yaml")
