@@ -280,6 +280,40 @@ def _previous_entries(
     return kept
 
 
+def _holds(given: Path, target: Path) -> bool:
+    """Whether an existing ``target`` is the file ``given``, or a file in the directory ``given`` (a bag)."""
+    if not given.exists():
+        return False
+    a, b = given.resolve(), target.resolve()
+    return a == b or (a.is_dir() and b.is_relative_to(a))
+
+
+def _check_install_targets(cfg: NodeConfig, calibrations: Mapping[str, Any], inputs: Sequence[Path]) -> None:
+    """Refuse ``--write-calibration`` targets that are not calibration files, before anything is written.
+
+    Parameters
+    ----------
+    cfg : NodeConfig
+    calibrations : mapping
+        The identified joints (the per-joint files written are theirs).
+    inputs : sequence of Path
+        The recording and the parameter file: a calibration written over one of them would
+        replace it (kept only as ``.bak``, until the next fit).
+
+    Raises
+    ------
+    InputError
+        A target that is an input of the fit, or exists and is not a regular file (a directory).
+    """
+    targets = [calibration_path(cfg.calibration_file)] if cfg.calibration_file and calibrations else []
+    targets += [calibration_path(j.calibration_file) for j in cfg.joints if j.name in calibrations and j.calibration_file]
+    for target in targets:
+        if target.exists() and any(_holds(p, target) for p in inputs):
+            raise InputError(f"calibration_file {target} is an input of this fit; writing the calibration would replace it")
+        if target.exists() and not target.is_file():
+            raise InputError(f"calibration_file {target} exists and is not a regular file")
+
+
 def fit_main(argv: Sequence[str]) -> int:
     """Run ``jointfit fit`` (see the module docstring); returns the exit status."""
     try:
@@ -351,6 +385,8 @@ def fit_main(argv: Sequence[str]) -> int:
         if opts.html:
             files["report.html"] = html_page(summary, {n: f"{n}.png" for n in figures})
         files["summary.json"] = json.dumps(summary, indent=2, allow_nan=False, default=str) + "\n"
+        if opts.write_calibration:
+            _check_install_targets(cfg, calibrations, [Path(opts.input), Path(opts.config)])
         write_all_or_nothing(out_dir, files)
         installed = []
         if opts.write_calibration:

@@ -442,7 +442,10 @@ def checked_frame_stamps(stamps: NDArray[np.float64], rate: float, source: str) 
         not increasing, and the fit would report too few frames instead of the rate.
     """
     if stamps.size and not (np.isfinite(stamps).all() and np.abs(stamps).max() < 2.0**63):
-        raise InputError(f"{source}: the frame rate {rate:g} Hz puts the frames beyond any time stamp; check the file's rate")
+        raise InputError(
+            f"{source}: the frame rate {rate:g} Hz puts the frames beyond any time stamp (ns in int64; frame k is at "
+            "(first frame number - 1 + k) / rate s); check the file's rate and frame numbers"
+        )
     if stamps.size > 1 and not (np.diff(stamps) > 0).all():
         raise InputError(
             f"{source}: the frame rate {rate:g} Hz puts frames less than 1 ns apart (stamps are ns); check the file's rate"

@@ -466,3 +466,27 @@ def test_write_calibration_keeps_the_node_file_entry_of_a_joint_not_identified(
     assert list(doc["joints"]) == ["hip", "knee"]
     assert doc["joints"]["hip"]["calibration"] == load_calibration(tmp_path / "o1" / "hip.calibration.yaml")
     assert doc["joints"]["knee"]["calibration"] == load_calibration(tmp_path / "o2" / "knee.calibration.yaml")
+
+
+@pytest.mark.parametrize("victim", ["recording", "config"])
+def test_write_calibration_refuses_to_replace_an_input(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]], victim: str
+) -> None:
+    """A calibration_file naming the recording or the parameter file: one line, exit 1, nothing written.
+
+    The fit replaced the recording (or its own parameter file) with the calibration, keeping the
+    original only as ``.bak`` until the next fit.
+    """
+    frames, _ = recording
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))
+    config = tmp_path / "params.yaml"
+    target = trc if victim == "recording" else config
+    _config(config, extra=f'    calibration_file: "{target}"\n')
+    config.write_text(config.read_text().replace(f'calibration_file: "{tmp_path / "installed" / "hip.yaml"}"', ""))
+    before = {p.name: p.read_bytes() for p in (trc, config)}
+    out = tmp_path / "o"
+    code, stdout, stderr = _fit(capsys, "fit", trc, "--config", config, "--out", out, "--no-report", "--write-calibration")
+    assert code == 1 and stdout == "" and f"calibration_file {target} is an input of this fit" in stderr, stderr
+    assert {p.name: p.read_bytes() for p in (trc, config)} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["params.yaml", "rec.trc"]
