@@ -181,7 +181,9 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
     unit = length_unit(run)
     name = f"{joint['name']} ({joint['type']})"
     if joint["status"] == "no estimate":
-        return f"{name}: no estimate: {joint['message']}"
+        dropped = ", ".join(f"{n} {why.replace('_', ' ')}" for why, n in joint["dropped"].items() if n)
+        why = f" ({dropped}; {joint['frames_received']} frames received)" if dropped else ""
+        return f"{name}: no estimate: {joint['message']}{why}"
     if "centre_parent" in joint:
         est = "centre_parent (" + ", ".join(f"{v:.4g}" for v in joint["centre_parent"]) + ")"
         est += f" sd <= {max(joint['sd_parent']):.2g} {unit}"
