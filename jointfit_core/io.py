@@ -373,7 +373,7 @@ def read_trc(path: str | os.PathLike[str]) -> MarkerData:
     """
     file = _check_existing_file(path)
     try:
-        lines = file.read_text(encoding="utf-8").splitlines()
+        lines = file.read_text(encoding="utf-8-sig").splitlines()  # a byte-order mark (Windows editors) is no text
     except UnicodeDecodeError:
         raise InputError(f"{file}: expected a UTF-8 text TRC file, got undecodable bytes") from None
     if len(lines) < 5 or not lines[0].startswith("PathFileType"):

@@ -268,6 +268,20 @@ def test_trc_round_trip_with_nan(tmp_path: Path) -> None:
         )
 
 
+def test_trc_with_a_byte_order_mark_reads_as_without(tmp_path: Path) -> None:
+    """A TRC saved by a Windows editor starts with a UTF-8 byte-order mark: the same data, not a refusal.
+
+    It was refused as not starting with 'PathFileType' (the mark shown as '\\ufeff').
+    """
+    data = _random_data(np.random.default_rng(7), n_frames=12, n_markers=3)
+    plain, marked = tmp_path / "plain.trc", tmp_path / "marked.trc"
+    write_trc(plain, data)
+    marked.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    back = read_trc(marked)
+    np.testing.assert_array_equal(back.markers, data.markers)
+    assert (back.labels, back.rate, back.units, back.first_frame) == (data.labels, data.rate, data.units, data.first_frame)
+
+
 def test_trc_round_trip_of_real_file(tmp_path: Path) -> None:
     _need_ezc3d()
     data = read_c3d(RACING)
