@@ -45,7 +45,7 @@ from jointfit_core.block_check import snapshots_consistency, window_consistency
 from jointfit_core.consistency import BlockConsistency
 from jointfit_core.errors import InputError, JointfitError
 from jointfit_core.hinge_from_sums import PoseSumsAxis
-from jointfit_core.io import MarkerData, read_c3d, read_trc
+from jointfit_core.io import METRES_PER_UNIT, MarkerData, read_c3d, read_trc
 from jointfit_core.segments import PoseSumsCentre
 
 from .bag import iter_selected_messages, select_topics
@@ -595,6 +595,8 @@ def run_fit(
         data = _read_markers(file, kind, cfg, data)
         total = data.n_frames
         run_cfg = _offline_config(cfg, whole_recording)
+        if data.units in METRES_PER_UNIT:  # the numbers' unit (workspace is in metres, converted by it)
+            run_cfg = dataclasses.replace(run_cfg, units=data.units)
         run = FitRun(file, kind, run_cfg, [], units=data.units, rate=data.rate)
         run.traces = _traces(run_cfg)
         step = max(1, total // max(n_checkpoints, 1))

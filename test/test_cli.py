@@ -490,3 +490,21 @@ def test_write_calibration_refuses_to_replace_an_input(
     assert code == 1 and stdout == "" and f"calibration_file {target} is an input of this fit" in stderr, stderr
     assert {p.name: p.read_bytes() for p in (trc, config)} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["params.yaml", "rec.trc"]
+
+
+def test_workspace_in_metres_holds_for_a_recording_in_mm(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """``workspace`` (metres, converted by the units) bounds a TRC in mm by its own unit, not ``units: m``.
+
+    A 5 m workspace took the file's millimetres for metres: every marker beyond 5 mm was treated as
+    absurd and the fit said 'no estimate: N absurd marker position(s)'.
+    """
+    frames, _ = recording
+    assert np.nanmax(np.abs(frames)) < 5000.0  # inside a 5 m volume
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))
+    config = _config(tmp_path / "params.yaml", extra="    workspace: 5.0\n")
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "o", "--no-report")
+    assert code == 0 and "absurd" not in stdout, stdout
+    assert all(j["absurd_markers"] == 0 for j in json.loads((tmp_path / "o" / "summary.json").read_text())["joints"])
