@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 from jointfit_core.errors import InputError, JointfitError, MissingDependencyError
 from jointfit_core.io import MarkerData
 
+from .markers_cli import marker_names_line
 from .offline import checked_frame_stamps, read_marker_file
 from .raw import pointcloud2_bytes, pose_array_bytes
 
@@ -273,5 +274,5 @@ def convert_main(argv: Sequence[str]) -> int:
           f"{len(data_m.labels)} markers in m (from {data.units if opts.units is None else opts.units}), "
           f"{data_m.rate:g} Hz, stamps {stamps[0] * 1e-9 if stamps.size else 0.0:.6g} s + {span:.6g} s")
     print(f"node parameters: {target / PARAMS_FILE}")
-    print(f"marker_names: [{', '.join(data_m.labels)}]")
+    print(marker_names_line(data_m.labels))
     return 0
