@@ -196,6 +196,8 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
             est += f" (statistical {joint['direction_sd_deg_parent_statistical']:.2g})"
         est += f", pointing {joint['axis_points']}"
     verdict = "" if joint["identifiable"] else f"; NOT identifiable: {joint['reason']}"
+    if joint.get("not_saved"):
+        verdict += f"; NO calibration: {joint['not_saved']}"
     if joint.get("gate_warning"):
         verdict += f"; WARNING: {joint['gate_warning']}"
     if joint.get("units_warning"):
@@ -352,8 +354,11 @@ def fit_main(argv: Sequence[str]) -> int:
         configured = {j.name: j for j in cfg.joints}
         for trace, joint in zip(run.traces, summary["joints"], strict=True):
             if trace.final is not None and trace.final.identifiable:
-                data = trace.runner.estimator.to_dict()
-                data.update(trace.runner.identity())  # the joint's record, as ~/save writes it (jointfit urdf reads it)
+                try:  # the estimate and the joint's record, as ~/save writes them (jointfit urdf reads it)
+                    data = trace.runner.calibration()
+                except JointfitError as exc:  # a hinge whose configured sign could not be chosen: ~/save refuses it too
+                    joint["not_saved"] = str(exc)
+                    continue
                 # The estimate is the recording's; the window a node resumes with (after ~/freeze false)
                 # is the configured one, not the fit's no-forgetting sums.
                 data.update(dict.fromkeys(("window", "window_s", "half_life", "half_life_s")))

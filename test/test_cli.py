@@ -508,3 +508,35 @@ def test_workspace_in_metres_holds_for_a_recording_in_mm(
     code, stdout, _ = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "o", "--no-report")
     assert code == 0 and "absurd" not in stdout, stdout
     assert all(j["absurd_markers"] == 0 for j in json.loads((tmp_path / "o" / "summary.json").read_text())["joints"])
+
+
+def test_hinge_whose_sign_marker_is_never_seen_gets_no_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """axis_toward_marker never visible: no calibration for the knee (exit 3), as ``~/save`` refuses it.
+
+    The fit wrote one with the axis's arbitrary sign, which a node then restored as 'pointing from
+    ... (as saved)', every flexion angle of the wrong sign.
+    """
+    frames, _ = recording
+    names = tuple(marker_names(0))
+    hidden = frames.copy()
+    hidden[:, names.index("PELV1")] = np.nan  # the sign marker: never seen
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(hidden, names, RATE, "mm"))
+    config = tmp_path / "params.yaml"
+    config.write_text(f"""jointfit:
+  ros__parameters:
+    joints: [knee]
+    marker_names: [{", ".join(names)}]
+    knee:
+      type: hinge
+      parent_markers: [FEMUR1, FEMUR2, FEMUR3, FEMUR4]
+      child_markers: [SHANK1, SHANK2, SHANK3, SHANK4]
+      axis_toward_marker: PELV1
+""")
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "o", "--no-report")
+    assert code == 3 and "NO calibration: the hinge sign (toward PELV1" in stdout, stdout
+    assert not (tmp_path / "o" / "knee.calibration.yaml").exists()
+    joint = json.loads((tmp_path / "o" / "summary.json").read_text())["joints"][0]
+    assert joint["identifiable"] and joint["calibration_file"] is None and "not chosen" in joint["not_saved"]
