@@ -284,6 +284,34 @@ def _previous_entries(
     return kept
 
 
+#: Files ``jointfit fit`` writes whatever the joints (besides ``summary.json``, always written).
+_RUN_FILES = ("subject.urdf", "report.html", "joints.csv", "joints.trc", "joints.c3d", "joint_angles.csv")
+
+
+def _stale_outputs(out_dir: Path, cfg: NodeConfig, written: Sequence[str]) -> list[str]:
+    """The fit's own file names in an existing ``out_dir`` that this run does not write (an earlier run's).
+
+    Parameters
+    ----------
+    out_dir : Path
+    cfg : NodeConfig
+        Its joints name the per-joint files (``<joint>.calibration.yaml``, ``<joint>.png``).
+    written : sequence of str
+        The names this run writes.
+
+    Returns
+    -------
+    list of str
+        E.g. ``right_knee.calibration.yaml`` of a run that identified the knee, beside a
+        summary that now says it is not identifiable. They are left in place (they may be
+        the user's), and named.
+    """
+    if not out_dir.is_dir():
+        return []
+    names = [f"{j.name}{suffix}" for j in cfg.joints for suffix in (".calibration.yaml", ".png")] + list(_RUN_FILES)
+    return [name for name in names if name not in written and (out_dir / name).exists()]
+
+
 def _holds(given: Path, target: Path) -> bool:
     """Whether an existing ``target`` is the file ``given``, or a file in the directory ``given`` (a bag)."""
     if not given.exists():
@@ -330,6 +358,7 @@ def fit_main(argv: Sequence[str]) -> int:
     out_dir = Path(opts.out) if opts.out else Path(Path(opts.input).name.split(".")[0] + "_jointfit")
     show = opts.progress or (not opts.quiet and sys.stderr.isatty())
     started = time.perf_counter()
+    stale: list[str] = []
     try:
         values = params_from_file(opts.config, opts.node_name)
         recording = read_marker_file(opts.input)  # C3D/TRC (None for a bag): marker_names default to its labels
@@ -389,6 +418,9 @@ def fit_main(argv: Sequence[str]) -> int:
         files: dict[str, bytes | str] = {f"{n}.calibration.yaml": calibration_text(d) for n, d in calibrations.items()}
         files.update({f"{n}.png": png for n, png in figures.items()})
         files.update(exported)
+        stale = _stale_outputs(out_dir, cfg, [*files, "report.html" if opts.html else ""])
+        if stale:
+            summary["stale_files"] = [str(out_dir / name) for name in stale]
         if opts.html:
             files["report.html"] = html_page(summary, {n: f"{n}.png" for n in figures})
         files["summary.json"] = json.dumps(summary, indent=2, allow_nan=False, default=str) + "\n"
@@ -425,6 +457,9 @@ def fit_main(argv: Sequence[str]) -> int:
               + "".join(f", {name}" for name in exported) + ")")
         for path in installed:
             print(path if ": not identified here" in path else f"installed calibration {path}")
+    if stale:  # also with --quiet: a calibration there is not this fit's
+        print(f"WARNING: {out_dir}/ still holds {', '.join(stale)} of an earlier fit, not of this one "
+              "(summary.json lists what this fit wrote)", file=sys.stderr)
     warned = any(j.get("gate_warning") for j in summary["joints"])
     return 0 if len(calibrations) == len(run.traces) and not warned else 3
 

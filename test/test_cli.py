@@ -540,3 +540,26 @@ def test_hinge_whose_sign_marker_is_never_seen_gets_no_calibration(
     assert not (tmp_path / "o" / "knee.calibration.yaml").exists()
     joint = json.loads((tmp_path / "o" / "summary.json").read_text())["joints"][0]
     assert joint["identifiable"] and joint["calibration_file"] is None and "not chosen" in joint["not_saved"]
+
+
+def test_an_earlier_fits_calibration_left_in_the_output_directory_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A second fit into the same --out that does not identify the hip names the hip's old calibration there.
+
+    The directory kept hip.calibration.yaml of the first fit beside a summary.json saying the hip has
+    no estimate, without a word: copying the directory's calibrations installed a stale one.
+    """
+    frames, _ = recording
+    names = tuple(marker_names(0))
+    config, out = _config(tmp_path / "params.yaml"), tmp_path / "o"
+    first = tmp_path / "first.trc"
+    write_trc(first, MarkerData(frames, names, RATE, "mm"))
+    assert _fit(capsys, "fit", first, "--config", config, "--out", out, "--no-report")[0] == 0
+    no_pelvis = frames.copy()
+    no_pelvis[:, [k for k, n in enumerate(names) if n.startswith("PELV")]] = np.nan
+    second = tmp_path / "second.trc"
+    write_trc(second, MarkerData(no_pelvis, names, RATE, "mm"))
+    code, _, stderr = _fit(capsys, "fit", second, "--config", config, "--out", out, "--no-report", "--quiet")
+    assert code == 3 and f"WARNING: {out}/ still holds hip.calibration.yaml of an earlier fit" in stderr, stderr
+    assert json.loads((out / "summary.json").read_text())["stale_files"] == [str(out / "hip.calibration.yaml")]
