@@ -373,7 +373,7 @@ def read_trc(path: str | os.PathLike[str]) -> MarkerData:
     """
     file = _check_existing_file(path)
     try:
-        lines = file.read_text(encoding="utf-8").splitlines()
+        lines = file.read_text(encoding="utf-8-sig").splitlines()  # a byte-order mark (Windows editors) is no text
     except UnicodeDecodeError:
         raise InputError(f"{file}: expected a UTF-8 text TRC file, got undecodable bytes") from None
     if len(lines) < 5 or not lines[0].startswith("PathFileType"):
@@ -429,10 +429,36 @@ def read_trc(path: str | os.PathLike[str]) -> MarkerData:
                 flat[k] = _trc_number(cell, f"marker {labels[k // 3]!r}", file, line_no)
     if np.isinf(markers).any():
         raise InputError(f"{file}: contains inf; expected numbers or empty cells for missing markers")
+    _check_frame_numbers(rows, first_frame, file)
     _check_plausible(markers, file, rows)
     return MarkerData(
         markers=markers, labels=labels, rate=rate, units=header["Units"], first_frame=first_frame
     )
+
+
+def _check_frame_numbers(rows: list[tuple[int, str]], first_frame: int, file: Path) -> None:
+    """Refuse a TRC whose Frame# column skips or repeats frames (the frames are taken one per row at DataRate).
+
+    Frame# is only checked when every row's is a number: row ``k`` must be frame
+    ``first_frame + 1 + k``. A file with rows left out would otherwise put every later frame
+    at the wrong time, and the per-frame exports at the wrong frame numbers.
+    """
+    numbers = []
+    for _, line in rows:
+        cells = _split_trc_row(line)
+        try:
+            numbers.append(float(cells[0]))
+        except (ValueError, IndexError):
+            return
+    expected = first_frame + 1 + np.arange(len(numbers))
+    bad = np.flatnonzero(np.asarray(numbers) != expected)
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(
+            f"{file}, line {rows[k][0]}: Frame# {numbers[k]:g} where the rows before it make it {expected[k]}: "
+            "the file skips, repeats or reorders frames; rows are frames at DataRate, so write missing frames as rows "
+            "with empty cells"
+        )
 
 
 def _trc_cell(value: float) -> str:

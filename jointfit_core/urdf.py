@@ -93,6 +93,11 @@ class UrdfJoint:
     direction_parent: FloatArray | None
 
 
+def _floats(value: Any) -> FloatArray:
+    """``value`` as a float64 array (a string or a mapping in it raises ValueError / TypeError)."""
+    return np.array(value, dtype=np.float64)
+
+
 def urdf_joint_from_calibration(data: Mapping[str, Any], source: str = "calibration") -> UrdfJoint:
     """A :class:`UrdfJoint` from a saved calibration dict.
 
@@ -111,12 +116,12 @@ def urdf_joint_from_calibration(data: Mapping[str, Any], source: str = "calibrat
         tc = np.array(data["template_child"], dtype=np.float64)
         est = data["estimate"]
         if kind == "ball":
-            pp, pc, direction = np.array(est["centre_parent"]), np.array(est["centre_child"]), None
+            pp, pc, direction = _floats(est["centre_parent"]), _floats(est["centre_child"]), None
         elif kind == "hinge":
-            pp, pc = np.array(est["point_parent"]), np.array(est["point_child"])
-            direction = np.array(est["direction_parent"], dtype=np.float64)
+            pp, pc = _floats(est["point_parent"]), _floats(est["point_child"])
+            direction = _floats(est["direction_parent"])
             if data.get("point_child_matched") is not None:  # the child-frame twin of point_parent
-                pc = np.array(data["point_child_matched"])
+                pc = _floats(data["point_child_matched"])
         else:
             raise InputError(f"{source}: kind {kind!r} is neither ball nor hinge")
     except (KeyError, TypeError, ValueError) as exc:
@@ -130,7 +135,10 @@ def urdf_joint_from_calibration(data: Mapping[str, Any], source: str = "calibrat
     if pp.shape != (3,) or pc.shape != (3,) or (direction is not None and direction.shape != (3,)):
         raise InputError(f"{source}: the estimate's points and direction must have 3 coordinates")
     if direction is not None:
-        direction = direction / np.linalg.norm(direction)
+        norm = float(np.linalg.norm(direction))
+        if not (math.isfinite(norm) and norm > 0.0):
+            raise InputError(f"{source}: the hinge direction {direction.tolist()} has no direction (length {norm:g})")
+        direction = direction / norm
     return UrdfJoint(name, kind, pm, cm, tp, tc, pp.astype(np.float64), pc.astype(np.float64), direction)
 
 

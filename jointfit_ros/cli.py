@@ -24,8 +24,8 @@ the file's labels are the marker names), and writes to ``DIR`` (default
   joint's ``calibration_file``, or pass ``--write-calibration`` to write it
   there, keeping the previous file as ``.bak``; with the node's
   ``calibration_file`` the identified joints all go to that one file,
-  :mod:`jointfit_core.node_calibration`); written only for joints with
-  an identifiable estimate;
+  :mod:`jointfit_core.node_calibration`, where a joint not identified keeps
+  its previous entry); written only for joints with an identifiable estimate;
 * ``summary.json``: estimates in the parent and child segment frames, their
   covariances and standard deviations, residuals, verdicts and counters;
 * ``<joint>.png``: the report figure (:mod:`jointfit_ros.report`), unless
@@ -61,16 +61,21 @@ import json
 import math
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
 from jointfit_core import __version__
 from jointfit_core.atomic import write_all_or_nothing
 from jointfit_core.calibration import calibration_text, save_calibration
-from jointfit_core.errors import JointfitError
+from jointfit_core.errors import InputError, JointfitError
 from jointfit_core.io import METRES_PER_UNIT
-from jointfit_core.node_calibration import node_calibration, save_node_calibration
+from jointfit_core.node_calibration import (
+    load_node_calibration,
+    node_calibration,
+    save_node_calibration,
+    segment_key,
+)
 from jointfit_core.urdf import urdf_from_calibrations
 
 from .angles_export import joint_angles_csv
@@ -78,8 +83,9 @@ from .export import EXPORT_FORMATS, check_exportable, export_files
 from .html_report import html_page
 from .naming import node_path
 from .offline import READER_PROCESS_MIN_BYTES, FitRun, read_marker_file, run_fit, with_file_marker_names
-from .params import calibration_path, node_config, params_from_file
+from .params import NodeConfig, calibration_path, node_config, params_from_file
 from .report import fit_summary, joint_reports, length_unit
+from .runner import JointRunner
 
 __all__ = ["main", "fit_main"]
 
@@ -175,7 +181,9 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
     unit = length_unit(run)
     name = f"{joint['name']} ({joint['type']})"
     if joint["status"] == "no estimate":
-        return f"{name}: no estimate: {joint['message']}"
+        dropped = ", ".join(f"{n} {why.replace('_', ' ')}" for why, n in joint["dropped"].items() if n)
+        why = f" ({dropped}; {joint['frames_received']} frames received)" if dropped else ""
+        return f"{name}: no estimate: {joint['message']}{why}"
     if "centre_parent" in joint:
         est = "centre_parent (" + ", ".join(f"{v:.4g}" for v in joint["centre_parent"]) + ")"
         est += f" sd <= {max(joint['sd_parent']):.2g} {unit}"
@@ -188,8 +196,12 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
             est += f" (statistical {joint['direction_sd_deg_parent_statistical']:.2g})"
         est += f", pointing {joint['axis_points']}"
     verdict = "" if joint["identifiable"] else f"; NOT identifiable: {joint['reason']}"
+    if joint.get("not_saved"):
+        verdict += f"; NO calibration: {joint['not_saved']}"
     if joint.get("gate_warning"):
         verdict += f"; WARNING: {joint['gate_warning']}"
+    if joint.get("units_warning"):
+        verdict += f"; WARNING: {joint['units_warning']}"
     if joint.get("consistency_warning"):
         verdict += f"; WARNING: {joint['consistency_warning']}"
     gated = joint["gated"]
@@ -224,6 +236,116 @@ def _anatomy_text(joint: dict[str, Any]) -> str:
     return out
 
 
+def _previous_entries(
+    path: Path, cfg: NodeConfig, units: str, fresh: Mapping[str, Any]
+) -> dict[str, dict[str, Any]]:
+    """The node calibration file's entries of the configured joints the fit did not identify, that a node would load.
+
+    As the node's ``~/save`` keeps a joint's previous entry when it cannot save it
+    (:class:`~jointfit_ros.calibration_store.NodeCalibrationFile`): without this, a fit of a
+    recording that identifies the knee only dropped the hip's entry from the file.
+
+    Parameters
+    ----------
+    path : Path
+        The node's ``calibration_file``.
+    cfg : NodeConfig
+    units : str
+        The fit's length unit: a file in another unit keeps nothing.
+    fresh : mapping
+        The joints identified by the fit (their entries are replaced).
+
+    Returns
+    -------
+    dict
+        Joint name to its previous calibration; empty when the file is absent or not loadable as a whole.
+    """
+    if not path.is_file():
+        return {}
+    try:
+        doc = load_node_calibration(path)
+    except (JointfitError, OSError, UnicodeDecodeError):
+        return {}
+    if doc["units"] != units:
+        return {}
+    kept: dict[str, dict[str, Any]] = {}
+    for joint in cfg.joints:
+        entry = doc["joints"].get(joint.name)
+        if joint.name in fresh or entry is None:
+            continue
+        problem = ""
+        try:
+            segment_key(entry["calibration"], "parent"), segment_key(entry["calibration"], "child")
+        except InputError as exc:
+            problem = str(exc)
+        check = JointRunner(joint, cfg)  # every check of the node's load (record, kind, version, identifiable)
+        if check.restore(entry["calibration"], f"file {path} (joint {joint.name})", str(path), problem):
+            kept[joint.name] = entry["calibration"]
+    return kept
+
+
+#: Files ``jointfit fit`` writes whatever the joints (besides ``summary.json``, always written).
+_RUN_FILES = ("subject.urdf", "report.html", "joints.csv", "joints.trc", "joints.c3d", "joint_angles.csv")
+
+
+def _stale_outputs(out_dir: Path, cfg: NodeConfig, written: Sequence[str]) -> list[str]:
+    """The fit's own file names in an existing ``out_dir`` that this run does not write (an earlier run's).
+
+    Parameters
+    ----------
+    out_dir : Path
+    cfg : NodeConfig
+        Its joints name the per-joint files (``<joint>.calibration.yaml``, ``<joint>.png``).
+    written : sequence of str
+        The names this run writes.
+
+    Returns
+    -------
+    list of str
+        E.g. ``right_knee.calibration.yaml`` of a run that identified the knee, beside a
+        summary that now says it is not identifiable. They are left in place (they may be
+        the user's), and named.
+    """
+    if not out_dir.is_dir():
+        return []
+    names = [f"{j.name}{suffix}" for j in cfg.joints for suffix in (".calibration.yaml", ".png")] + list(_RUN_FILES)
+    return [name for name in names if name not in written and (out_dir / name).exists()]
+
+
+def _holds(given: Path, target: Path) -> bool:
+    """Whether an existing ``target`` is the file ``given``, or a file in the directory ``given`` (a bag)."""
+    if not given.exists():
+        return False
+    a, b = given.resolve(), target.resolve()
+    return a == b or (a.is_dir() and b.is_relative_to(a))
+
+
+def _check_install_targets(cfg: NodeConfig, calibrations: Mapping[str, Any], inputs: Sequence[Path]) -> None:
+    """Refuse ``--write-calibration`` targets that are not calibration files, before anything is written.
+
+    Parameters
+    ----------
+    cfg : NodeConfig
+    calibrations : mapping
+        The identified joints (the per-joint files written are theirs).
+    inputs : sequence of Path
+        The recording and the parameter file: a calibration written over one of them would
+        replace it (kept only as ``.bak``, until the next fit).
+
+    Raises
+    ------
+    InputError
+        A target that is an input of the fit, or exists and is not a regular file (a directory).
+    """
+    targets = [calibration_path(cfg.calibration_file)] if cfg.calibration_file and calibrations else []
+    targets += [calibration_path(j.calibration_file) for j in cfg.joints if j.name in calibrations and j.calibration_file]
+    for target in targets:
+        if target.exists() and any(_holds(p, target) for p in inputs):
+            raise InputError(f"calibration_file {target} is an input of this fit; writing the calibration would replace it")
+        if target.exists() and not target.is_file():
+            raise InputError(f"calibration_file {target} exists and is not a regular file")
+
+
 def fit_main(argv: Sequence[str]) -> int:
     """Run ``jointfit fit`` (see the module docstring); returns the exit status."""
     try:
@@ -236,6 +358,7 @@ def fit_main(argv: Sequence[str]) -> int:
     out_dir = Path(opts.out) if opts.out else Path(Path(opts.input).name.split(".")[0] + "_jointfit")
     show = opts.progress or (not opts.quiet and sys.stderr.isatty())
     started = time.perf_counter()
+    stale: list[str] = []
     try:
         values = params_from_file(opts.config, opts.node_name)
         recording = read_marker_file(opts.input)  # C3D/TRC (None for a bag): marker_names default to its labels
@@ -260,8 +383,11 @@ def fit_main(argv: Sequence[str]) -> int:
         configured = {j.name: j for j in cfg.joints}
         for trace, joint in zip(run.traces, summary["joints"], strict=True):
             if trace.final is not None and trace.final.identifiable:
-                data = trace.runner.estimator.to_dict()
-                data.update(trace.runner.identity())  # the joint's record, as ~/save writes it (jointfit urdf reads it)
+                try:  # the estimate and the joint's record, as ~/save writes them (jointfit urdf reads it)
+                    data = trace.runner.calibration()
+                except JointfitError as exc:  # a hinge whose configured sign could not be chosen: ~/save refuses it too
+                    joint["not_saved"] = str(exc)
+                    continue
                 # The estimate is the recording's; the window a node resumes with (after ~/freeze false)
                 # is the configured one, not the fit's no-forgetting sums.
                 data.update(dict.fromkeys(("window", "window_s", "half_life", "half_life_s")))
@@ -292,20 +418,28 @@ def fit_main(argv: Sequence[str]) -> int:
         files: dict[str, bytes | str] = {f"{n}.calibration.yaml": calibration_text(d) for n, d in calibrations.items()}
         files.update({f"{n}.png": png for n, png in figures.items()})
         files.update(exported)
+        stale = _stale_outputs(out_dir, cfg, [*files, "report.html" if opts.html else ""])
+        if stale:
+            summary["stale_files"] = [str(out_dir / name) for name in stale]
         if opts.html:
             files["report.html"] = html_page(summary, {n: f"{n}.png" for n in figures})
         files["summary.json"] = json.dumps(summary, indent=2, allow_nan=False, default=str) + "\n"
+        if opts.write_calibration:
+            _check_install_targets(cfg, calibrations, [Path(opts.input), Path(opts.config)])
         write_all_or_nothing(out_dir, files)
         installed = []
         if opts.write_calibration:
             if cfg.calibration_file and calibrations:  # the node's one file: every identified joint
+                node_file = calibration_path(cfg.calibration_file)
+                previous = _previous_entries(node_file, cfg, length_unit(run), calibrations)
                 doc = node_calibration(
-                    [calibrations[j.name] for j in cfg.joints if j.name in calibrations],
+                    [calibrations.get(j.name) or previous[j.name] for j in cfg.joints if j.name in {**calibrations, **previous}],
                     node=node_path(opts.node_name) if opts.node_name else "",
-                    units=cfg.units,
+                    units=length_unit(run),  # the numbers' unit: a C3D's or TRC's own, not the units parameter
                     segment_labels=cfg.segment_labels(),
                 )
-                installed.append(str(save_node_calibration(calibration_path(cfg.calibration_file), doc)))
+                installed.append(str(save_node_calibration(node_file, doc)))
+                installed += [f"{name}: not identified here, its entry is kept ({node_file})" for name in previous]
             for j in cfg.joints:
                 if j.name in calibrations and j.calibration_file:
                     installed.append(str(save_calibration(calibration_path(j.calibration_file), calibrations[j.name])))
@@ -322,7 +456,10 @@ def fit_main(argv: Sequence[str]) -> int:
               + (f", {len(figures)} figure(s)" if figures else "") + (", report.html" if opts.html else "")
               + "".join(f", {name}" for name in exported) + ")")
         for path in installed:
-            print(f"installed calibration {path}")
+            print(path if ": not identified here" in path else f"installed calibration {path}")
+    if stale:  # also with --quiet: a calibration there is not this fit's
+        print(f"WARNING: {out_dir}/ still holds {', '.join(stale)} of an earlier fit, not of this one "
+              "(summary.json lists what this fit wrote)", file=sys.stderr)
     warned = any(j.get("gate_warning") for j in summary["joints"])
     return 0 if len(calibrations) == len(run.traces) and not warned else 3
 

@@ -55,7 +55,8 @@ from numpy.typing import NDArray
 from jointfit_core.errors import InputError, JointfitError, MissingDependencyError
 from jointfit_core.io import MarkerData
 
-from .offline import read_marker_file
+from .markers_cli import marker_names_line
+from .offline import checked_frame_stamps, read_marker_file
 from .raw import pointcloud2_bytes, pose_array_bytes
 
 __all__ = ["convert_main", "frame_stamps_ns", "marker_messages", "params_snippet", "PARAMS_FILE"]
@@ -113,16 +114,18 @@ def frame_stamps_ns(data: MarkerData, start: float | None = None) -> NDArray[np.
     Raises
     ------
     InputError
-        A stamp beyond what a header carries (int32 seconds).
+        A stamp beyond what a header carries (int32 seconds), or frames on one nanosecond
+        (:func:`~jointfit_ros.offline.checked_frame_stamps`).
     """
     k = np.arange(data.n_frames, dtype=np.float64)
-    if start is None:
-        stamps = np.rint((data.first_frame + k) / data.rate * 1e9)
-    else:
-        stamps = round(start * 1e9) + np.rint(k / data.rate * 1e9)
+    with np.errstate(over="ignore", invalid="ignore"):
+        if start is None:
+            stamps = np.rint((data.first_frame + k) / data.rate * 1e9)
+        else:
+            stamps = round(start * 1e9) + np.rint(k / data.rate * 1e9)
     if stamps.size and not stamps[-1] < _MAX_STAMP_NS:
         raise InputError(f"the last frame's stamp ({stamps[-1] * 1e-9:.6g} s) exceeds what a header carries (2^31 s)")
-    return stamps.astype(np.int64)
+    return checked_frame_stamps(stamps, data.rate, "the recording")
 
 
 def marker_messages(
@@ -271,5 +274,5 @@ def convert_main(argv: Sequence[str]) -> int:
           f"{len(data_m.labels)} markers in m (from {data.units if opts.units is None else opts.units}), "
           f"{data_m.rate:g} Hz, stamps {stamps[0] * 1e-9 if stamps.size else 0.0:.6g} s + {span:.6g} s")
     print(f"node parameters: {target / PARAMS_FILE}")
-    print(f"marker_names: [{', '.join(data_m.labels)}]")
+    print(marker_names_line(data_m.labels))
     return 0

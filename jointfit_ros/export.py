@@ -252,6 +252,7 @@ def c3d_bytes(data: MarkerData) -> bytes:
     c3d["parameters"]["POINT"]["LABELS"]["value"] = list(data.labels)
     c3d.add_parameter("POINT", "UNITS", [data.units])
     c3d["data"]["points"] = points
+    c3d["header"]["points"]["first_frame"] = data.first_frame  # the input's frame numbers (0-based; ezc3d writes +1)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "joints.c3d"
         c3d.write(os.fspath(path))

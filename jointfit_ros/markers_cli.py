@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from jointfit_core.errors import JointfitError
 from jointfit_core.io import MarkerData, read_c3d, read_trc
 
-__all__ = ["markers_main", "marker_gaps", "describe_markers"]
+__all__ = ["markers_main", "marker_gaps", "describe_markers", "marker_names_line"]
 
 PROG = "jointfit markers"
 
@@ -49,6 +49,14 @@ def marker_gaps(markers: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray
     return gone.sum(axis=0).astype(np.intp), longest
 
 
+def marker_names_line(labels: Sequence[str]) -> str:
+    """``marker_names: [...]`` as YAML that reads back as ``labels`` (a label such as ``#C7``, ``a, b`` or ``yes`` quoted)."""
+    import yaml
+
+    flow: str = yaml.safe_dump(list(labels), default_flow_style=True, width=1 << 20, allow_unicode=True)
+    return f"marker_names: {flow.strip()}"
+
+
 def describe_markers(data: MarkerData, path: Path) -> str:
     """The text of :func:`markers_main` for a C3D or TRC file."""
     missing, longest = marker_gaps(data.markers)
@@ -56,7 +64,7 @@ def describe_markers(data: MarkerData, path: Path) -> str:
     lines = [
         f"{path}: {data.n_frames} frames at {data.rate:g} Hz ({seconds:.1f} s), units {data.units or '(none)'}, "
         f"{len(data.labels)} markers",
-        f"marker_names: [{', '.join(data.labels)}]",
+        marker_names_line(data.labels),
         "",
         f"{'marker':<24} {'missing frames':>14} {'%':>6} {'longest gap':>12}",
     ]

@@ -45,7 +45,7 @@ from jointfit_core.block_check import snapshots_consistency, window_consistency
 from jointfit_core.consistency import BlockConsistency
 from jointfit_core.errors import InputError, JointfitError
 from jointfit_core.hinge_from_sums import PoseSumsAxis
-from jointfit_core.io import MarkerData, read_c3d, read_trc
+from jointfit_core.io import METRES_PER_UNIT, MarkerData, read_c3d, read_trc
 from jointfit_core.segments import PoseSumsCentre
 
 from .bag import iter_selected_messages, select_topics
@@ -418,10 +418,49 @@ def _bag_events(
         yield parsed.n + len(poses)
 
 
+def checked_frame_stamps(stamps: NDArray[np.float64], rate: float, source: str) -> NDArray[np.int64]:
+    """Frame stamps of a C3D/TRC file (ns, as floats) as int64, refused when the file's rate cannot give them.
+
+    Parameters
+    ----------
+    stamps : ndarray, shape (N,)
+        ``(first_frame + k) / rate`` (or a given start + ``k / rate``) in ns, rounded.
+    rate : float
+        The file's frame rate, Hz, for the message.
+    source : str
+        The file, for the message.
+
+    Returns
+    -------
+    ndarray of int64, shape (N,)
+
+    Raises
+    ------
+    InputError
+        A stamp that is not finite or beyond int64 nanoseconds (a rate near 0), or two frames
+        on one nanosecond (a rate above 1 GHz): every frame after the first would be dropped as
+        not increasing, and the fit would report too few frames instead of the rate.
+    """
+    if stamps.size and not (np.isfinite(stamps).all() and np.abs(stamps).max() < 2.0**63):
+        raise InputError(
+            f"{source}: the frame rate {rate:g} Hz puts the frames beyond any time stamp (ns in int64; frame k is at "
+            "(first frame number - 1 + k) / rate s); check the file's rate and frame numbers"
+        )
+    if stamps.size > 1 and not (np.diff(stamps) > 0).all():
+        raise InputError(
+            f"{source}: the frame rate {rate:g} Hz puts frames less than 1 ns apart (stamps are ns); check the file's rate"
+        )
+    return stamps.astype(np.int64)
+
+
 def _marker_events(run: FitRun, data: MarkerData, step: int) -> Generator[int, None, None]:
     """Give the frames of a marker file to every joint in blocks; yields the number of frames of each."""
     frames = data.select(run.cfg.marker_names)
-    stamps_ns = np.rint((data.first_frame + np.arange(data.n_frames)) / data.rate * 1e9).astype(np.int64)
+    if run.cfg.zero_is_missing:  # TRC exporters write gaps as 0 0 0 too (read_c3d makes them NaN already)
+        frames[(frames == 0.0).all(axis=2)] = np.nan
+    with np.errstate(over="ignore", invalid="ignore"):
+        stamps = np.rint((data.first_frame + np.arange(data.n_frames)) / data.rate * 1e9)
+    stamps_ns = checked_frame_stamps(stamps, data.rate, str(run.path))
     run.frames = frames
     run.stamps = stamps_ns.astype(np.float64) * 1e-9
     start = 0
@@ -556,6 +595,8 @@ def run_fit(
         data = _read_markers(file, kind, cfg, data)
         total = data.n_frames
         run_cfg = _offline_config(cfg, whole_recording)
+        if data.units in METRES_PER_UNIT:  # the numbers' unit (workspace is in metres, converted by it)
+            run_cfg = dataclasses.replace(run_cfg, units=data.units)
         run = FitRun(file, kind, run_cfg, [], units=data.units, rate=data.rate)
         run.traces = _traces(run_cfg)
         step = max(1, total // max(n_checkpoints, 1))

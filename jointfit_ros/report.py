@@ -43,6 +43,7 @@ from jointfit_core.pose import poses_from_markers
 from jointfit_core.rom import RangeOfMotion
 from jointfit_core.segments import PoseSumsCentre
 
+from .absurd_values import unit_problem
 from .anatomy_report import anatomical_summary, joint_rom, rom_summary
 from .bag_blocks import can_fork
 from .geometry import SegmentGeometry, landmark_stat
@@ -174,6 +175,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["reason"] = sol.reason
     out["message"] = sol.reason if not sol.identifiable else warning
     out["gate_warning"] = warning
+    out["units_warning"] = units_warning(run, r)
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
     out["lever_ratio"] = r.lever_ratios()  # the joint's distance from each marker cluster, in cluster radii
@@ -264,6 +266,36 @@ def gate_warning(r: JointRunner) -> str:
     return gated_verdict(est.gated_frames, est.n_frames_seen, r.cfg.segment_names(), est.joint_gated_frames)
 
 
+def units_warning(run: FitRun, r: JointRunner) -> str:
+    """Why the joint's marker clusters are implausibly large or small for the run's length unit (empty when not).
+
+    Parameters
+    ----------
+    run : FitRun
+    r : JointRunner
+        The joint, with its templates.
+
+    Returns
+    -------
+    str
+        :func:`~jointfit_ros.absurd_values.unit_problem` for :func:`length_unit` (e.g. a C3D in
+        millimetres that declares metres, or a bag in millimetres fitted with ``units: m``),
+        saying where that unit came from; empty when plausible or unknown.
+    """
+    unit = length_unit(run)
+    problem = unit_problem(r.estimator.length_scale, unit)
+    if not problem:
+        return ""
+    if run.units:
+        source = f"the file declares {unit!r}"
+    elif run.kind in ("c3d", "trc"):
+        source = f"the file declares no unit, {unit!r} is the units parameter's"
+    else:
+        source = f"{unit!r} is the units parameter's"
+    problem = problem.split("; check the driver")[0].replace("the stream looks like", "the recording looks like")
+    return f"{problem} ({source}); every length of the fit, the calibrations and subject.urdf are off by that factor"
+
+
 def fit_summary(
     run: FitRun, *, elapsed_s: float, version: str, geos: Mapping[str, SegmentGeometry | None] | None = None
 ) -> dict[str, Any]:
@@ -295,7 +327,8 @@ def fit_summary(
         the check across movement blocks (the blocks' estimates, chi-square,
         dof, p-value, ratio, spread, verdict; see
         :mod:`jointfit_core.consistency`), and ``consistency_warning`` its
-        "skin artefact dominates" message when it fails (empty otherwise).
+        "skin artefact dominates" message when it fails (empty otherwise);
+        ``units_warning``: :func:`units_warning` (empty when the clusters' size fits the length unit).
     """
     return {
         "jointfit_version": version,

@@ -361,3 +361,205 @@ def test_console_entry_point(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("right_knee (hinge): direction_parent (")
     assert (tmp_path / "knee_jointfit" / "right_knee.calibration.yaml").exists()
+
+
+def test_write_calibration_node_file_records_the_recording_unit(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A TRC in mm fitted with the default ``units: m``: the node file says mm, as its numbers are.
+
+    It said ``units: m`` (the parameter) over millimetre numbers, so a node in metres would take
+    it as its own and a reader would scale every length by 1000.
+    """
+    from jointfit_core.node_calibration import load_node_calibration
+
+    frames, _ = recording
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))
+    node_file = tmp_path / "installed" / "subject.yaml"
+    config = _config(tmp_path / "params.yaml", extra=f'    calibration_file: "{node_file}"\n')
+    config.write_text(config.read_text().replace(f'calibration_file: "{tmp_path / "installed" / "hip.yaml"}"', ""))
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "o", "--no-report", "--write-calibration")
+    assert code == 0 and f"installed calibration {node_file}" in stdout, stdout
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["length_unit"] == "mm"
+    assert load_node_calibration(node_file)["units"] == "mm"
+
+
+def test_trc_gaps_written_as_zeros_are_missing_markers(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A TRC whose occluded markers are 0 0 0 (as some exporters write gaps) fits as with empty cells.
+
+    ``zero_is_missing`` (default) holds for TRC as for C3D and the node: the zeros used to be taken
+    as marker positions, so the gate rejected those frames and the exit status said to look for
+    swapped labels, while the same file converted to a bag gave the estimate of the gaps.
+    """
+    frames, _ = recording
+    assert np.isnan(frames).any()  # the recording has occlusions
+    names = tuple(marker_names(0))
+    blank, zeros = tmp_path / "blank.trc", tmp_path / "zeros.trc"
+    write_trc(blank, MarkerData(frames, names, RATE, "mm"))
+    write_trc(zeros, MarkerData(np.nan_to_num(frames, nan=0.0), names, RATE, "mm"))
+    config = _config(tmp_path / "params.yaml")
+    results = []
+    for trc in (blank, zeros):
+        code, stdout, stderr = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / trc.stem, "--no-report")
+        assert code == 0, stdout + stderr
+        results.append(json.loads((tmp_path / trc.stem / "summary.json").read_text())["joints"])
+    for a, b in zip(*results, strict=True):
+        assert a["gated"] == b["gated"] and a["frames_in_window"] == b["frames_in_window"]
+        for key in ("centre_parent", "cov_parent", "direction_parent", "point_parent"):
+            if key in a:
+                np.testing.assert_allclose(b[key], a[key], rtol=1e-9, atol=1e-12)
+
+
+def test_recording_in_the_wrong_unit_is_flagged(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """Millimetre markers in a TRC that declares metres: a units warning, not a silent 1000x fit.
+
+    The node warns about such a stream (``units``); the fit wrote a calibration and a URDF with
+    thigh clusters tens of metres wide and said nothing. (The exit status stays that of the fit.)
+    """
+    frames, _ = recording
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "m"))
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", _config(tmp_path / "params.yaml"), "--out", tmp_path / "o", "--no-report")
+    assert code == 0
+    assert stdout.count("WARNING: marker clusters are") == 2 and "looks like mm" in stdout
+    joints = json.loads((tmp_path / "o" / "summary.json").read_text())["joints"]
+    assert all("implausible for units 'm'" in j["units_warning"] for j in joints)
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))  # the same numbers, declared right
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", _config(tmp_path / "params.yaml"), "--out", tmp_path / "p", "--no-report")
+    assert code == 0 and "WARNING" not in stdout
+    assert all(j["units_warning"] == "" for j in json.loads((tmp_path / "p" / "summary.json").read_text())["joints"])
+
+
+def test_write_calibration_keeps_the_node_file_entry_of_a_joint_not_identified(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A second fit that identifies the knee only keeps the hip's entry in the node file, as ``~/save`` does.
+
+    It wrote the identified joints only, so the hip's calibration left the file (and, with the next
+    fit, its ``.bak``).
+    """
+    from jointfit_core.node_calibration import load_node_calibration
+
+    frames, _ = recording
+    names = tuple(marker_names(0))
+    node_file = tmp_path / "installed" / "subject.yaml"
+    config = _config(tmp_path / "params.yaml", extra=f'    calibration_file: "{node_file}"\n')
+    config.write_text(config.read_text().replace(f'calibration_file: "{tmp_path / "installed" / "hip.yaml"}"', ""))
+    first = tmp_path / "both.trc"
+    write_trc(first, MarkerData(frames, names, RATE, "mm"))
+    code, _, _ = _fit(capsys, "fit", first, "--config", config, "--out", tmp_path / "o1", "--no-report", "--write-calibration")
+    assert code == 0
+    no_pelvis = frames.copy()
+    no_pelvis[:, [k for k, n in enumerate(names) if n.startswith("PELV")]] = np.nan  # the hip cannot be estimated
+    second = tmp_path / "knee_only.trc"
+    write_trc(second, MarkerData(no_pelvis, names, RATE, "mm"))
+    code, stdout, _ = _fit(capsys, "fit", second, "--config", config, "--out", tmp_path / "o2", "--no-report", "--write-calibration")
+    assert code == 3 and not (tmp_path / "o2" / "hip.calibration.yaml").exists()
+    assert f"hip: not identified here, its entry is kept ({node_file})" in stdout, stdout
+    doc = load_node_calibration(node_file)
+    assert list(doc["joints"]) == ["hip", "knee"]
+    assert doc["joints"]["hip"]["calibration"] == load_calibration(tmp_path / "o1" / "hip.calibration.yaml")
+    assert doc["joints"]["knee"]["calibration"] == load_calibration(tmp_path / "o2" / "knee.calibration.yaml")
+
+
+@pytest.mark.parametrize("victim", ["recording", "config"])
+def test_write_calibration_refuses_to_replace_an_input(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]], victim: str
+) -> None:
+    """A calibration_file naming the recording or the parameter file: one line, exit 1, nothing written.
+
+    The fit replaced the recording (or its own parameter file) with the calibration, keeping the
+    original only as ``.bak`` until the next fit.
+    """
+    frames, _ = recording
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))
+    config = tmp_path / "params.yaml"
+    target = trc if victim == "recording" else config
+    _config(config, extra=f'    calibration_file: "{target}"\n')
+    config.write_text(config.read_text().replace(f'calibration_file: "{tmp_path / "installed" / "hip.yaml"}"', ""))
+    before = {p.name: p.read_bytes() for p in (trc, config)}
+    out = tmp_path / "o"
+    code, stdout, stderr = _fit(capsys, "fit", trc, "--config", config, "--out", out, "--no-report", "--write-calibration")
+    assert code == 1 and stdout == "" and f"calibration_file {target} is an input of this fit" in stderr, stderr
+    assert {p.name: p.read_bytes() for p in (trc, config)} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["params.yaml", "rec.trc"]
+
+
+def test_workspace_in_metres_holds_for_a_recording_in_mm(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """``workspace`` (metres, converted by the units) bounds a TRC in mm by its own unit, not ``units: m``.
+
+    A 5 m workspace took the file's millimetres for metres: every marker beyond 5 mm was treated as
+    absurd and the fit said 'no estimate: N absurd marker position(s)'.
+    """
+    frames, _ = recording
+    assert np.nanmax(np.abs(frames)) < 5000.0  # inside a 5 m volume
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(frames, tuple(marker_names(0)), RATE, "mm"))
+    config = _config(tmp_path / "params.yaml", extra="    workspace: 5.0\n")
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "o", "--no-report")
+    assert code == 0 and "absurd" not in stdout, stdout
+    assert all(j["absurd_markers"] == 0 for j in json.loads((tmp_path / "o" / "summary.json").read_text())["joints"])
+
+
+def test_hinge_whose_sign_marker_is_never_seen_gets_no_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """axis_toward_marker never visible: no calibration for the knee (exit 3), as ``~/save`` refuses it.
+
+    The fit wrote one with the axis's arbitrary sign, which a node then restored as 'pointing from
+    ... (as saved)', every flexion angle of the wrong sign.
+    """
+    frames, _ = recording
+    names = tuple(marker_names(0))
+    hidden = frames.copy()
+    hidden[:, names.index("PELV1")] = np.nan  # the sign marker: never seen
+    trc = tmp_path / "rec.trc"
+    write_trc(trc, MarkerData(hidden, names, RATE, "mm"))
+    config = tmp_path / "params.yaml"
+    config.write_text(f"""jointfit:
+  ros__parameters:
+    joints: [knee]
+    marker_names: [{", ".join(names)}]
+    knee:
+      type: hinge
+      parent_markers: [FEMUR1, FEMUR2, FEMUR3, FEMUR4]
+      child_markers: [SHANK1, SHANK2, SHANK3, SHANK4]
+      axis_toward_marker: PELV1
+""")
+    code, stdout, _ = _fit(capsys, "fit", trc, "--config", config, "--out", tmp_path / "o", "--no-report")
+    assert code == 3 and "NO calibration: the hinge sign (toward PELV1" in stdout, stdout
+    assert not (tmp_path / "o" / "knee.calibration.yaml").exists()
+    joint = json.loads((tmp_path / "o" / "summary.json").read_text())["joints"][0]
+    assert joint["identifiable"] and joint["calibration_file"] is None and "not chosen" in joint["not_saved"]
+
+
+def test_an_earlier_fits_calibration_left_in_the_output_directory_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], recording: tuple[NDArray[np.float64], NDArray[np.int64]]
+) -> None:
+    """A second fit into the same --out that does not identify the hip names the hip's old calibration there.
+
+    The directory kept hip.calibration.yaml of the first fit beside a summary.json saying the hip has
+    no estimate, without a word: copying the directory's calibrations installed a stale one.
+    """
+    frames, _ = recording
+    names = tuple(marker_names(0))
+    config, out = _config(tmp_path / "params.yaml"), tmp_path / "o"
+    first = tmp_path / "first.trc"
+    write_trc(first, MarkerData(frames, names, RATE, "mm"))
+    assert _fit(capsys, "fit", first, "--config", config, "--out", out, "--no-report")[0] == 0
+    no_pelvis = frames.copy()
+    no_pelvis[:, [k for k, n in enumerate(names) if n.startswith("PELV")]] = np.nan
+    second = tmp_path / "second.trc"
+    write_trc(second, MarkerData(no_pelvis, names, RATE, "mm"))
+    code, _, stderr = _fit(capsys, "fit", second, "--config", config, "--out", out, "--no-report", "--quiet")
+    assert code == 3 and f"WARNING: {out}/ still holds hip.calibration.yaml of an earlier fit" in stderr, stderr
+    assert json.loads((out / "summary.json").read_text())["stale_files"] == [str(out / "hip.calibration.yaml")]

@@ -274,3 +274,42 @@ def test_bad_convert_and_export_arguments(tmp_path: Path, recording: tuple[Path,
                      "--export", "csv"])
     assert code == 1 and "export covers marker joints only" in _one_line(capsys.readouterr().err)
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("rate", "expected"), [(1e300, "less than 1 ns apart"), (1e-300, "beyond any time stamp")])
+def test_a_rate_no_stamp_can_carry_is_one_line(tmp_path: Path, recording: tuple[Path, Any, Any],
+                                               capsys: pytest.CaptureFixture[str], rate: float, expected: str) -> None:
+    """A TRC whose DataRate cannot stamp its frames is refused by fit and convert, naming the rate.
+
+    At 1e300 Hz every frame fell on stamp 0 and the fit said 'building templates ... 1/30' (all but
+    the first frame dropped as not increasing), convert wrote a bag of 800 messages at one stamp;
+    at 1e-300 Hz numpy's overflow warnings preceded the same misleading fit.
+    """
+    _, frames, _ = recording
+    odd = tmp_path / "odd.trc"
+    write_trc(odd, MarkerData(frames, tuple(marker_names(0)), rate, "mm"))
+    out = tmp_path / "out"
+    code = fit_main([str(odd), "--config", str(_params(tmp_path / "p.yaml", JOINTS)), "--out", str(out)])
+    line = _one_line(capsys.readouterr().err)
+    assert code == 1 and not out.exists() and f"{odd}: the frame rate {rate:g} Hz" in line and expected in line, line
+    code = convert_main([str(odd), "--to", str(tmp_path / "bag")])
+    line = _one_line(capsys.readouterr().err)
+    assert code == 1 and not (tmp_path / "bag").exists() and line.startswith("jointfit convert: error: "), line
+
+
+def test_exports_keep_the_recordings_frame_numbers(tmp_path: Path, recording: tuple[Path, Any, Any]) -> None:
+    """A recording that starts at frame 500: joints.c3d starts there too, as joints.trc and joints.csv do.
+
+    joints.c3d started at frame 1 whatever the input, so software that lines the virtual markers up
+    with the trial by frame number put them 499 frames early.
+    """
+    pytest.importorskip("ezc3d")
+    _, frames, _ = recording
+    late = tmp_path / "late.trc"
+    write_trc(late, MarkerData(frames, tuple(marker_names(0)), RATE, "mm", first_frame=499))
+    out = tmp_path / "out"
+    done = _cli("fit", late, "--config", _params(tmp_path / "p.yaml", JOINTS), "--out", out, "--no-report",
+                "--export", "csv,trc,c3d")
+    assert done.returncode == 0, done.stderr
+    assert read_c3d(out / "joints.c3d").first_frame == read_trc(out / "joints.trc").first_frame == 499
+    assert (out / "joints.csv").read_text().splitlines()[1].startswith("500,")

@@ -268,6 +268,41 @@ def test_trc_round_trip_with_nan(tmp_path: Path) -> None:
         )
 
 
+def test_trc_with_a_byte_order_mark_reads_as_without(tmp_path: Path) -> None:
+    """A TRC saved by a Windows editor starts with a UTF-8 byte-order mark: the same data, not a refusal.
+
+    It was refused as not starting with 'PathFileType' (the mark shown as '\\ufeff').
+    """
+    data = _random_data(np.random.default_rng(7), n_frames=12, n_markers=3)
+    plain, marked = tmp_path / "plain.trc", tmp_path / "marked.trc"
+    write_trc(plain, data)
+    marked.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    back = read_trc(marked)
+    np.testing.assert_array_equal(back.markers, data.markers)
+    assert (back.labels, back.rate, back.units, back.first_frame) == (data.labels, data.rate, data.units, data.first_frame)
+
+
+def test_trc_whose_frame_numbers_skip_is_refused(tmp_path: Path) -> None:
+    """Rows left out of a TRC (Frame# 1..100, then 151..) are refused, naming the line, not read as contiguous.
+
+    The frames after the gap were taken 50 frames early: every later frame at the wrong time, and
+    the fit's joints.csv / joints.trc numbered them 50 too low.
+    """
+    data = _random_data(np.random.default_rng(8), n_frames=200, n_markers=2)
+    path = tmp_path / "full.trc"
+    write_trc(path, data)
+    lines = path.read_text().splitlines()
+    header, rows = lines[:6], lines[6:]
+    kept = rows[:100] + rows[150:]
+    header[2] = header[2].replace("\t200\t2\t", f"\t{len(kept)}\t2\t", 1)
+    gap = tmp_path / "gap.trc"
+    gap.write_text("\n".join(header + kept) + "\n")
+    first = data.first_frame + 1
+    with pytest.raises(InputError, match=rf"gap\.trc, line 107: Frame# {first + 150} where the rows before it make it {first + 100}:"):
+        read_trc(gap)
+    assert read_trc(path).n_frames == 200  # contiguous frame numbers, from any first frame, read as before
+
+
 def test_trc_round_trip_of_real_file(tmp_path: Path) -> None:
     _need_ezc3d()
     data = read_c3d(RACING)

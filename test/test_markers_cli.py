@@ -58,3 +58,19 @@ def test_markers_of_a_bag_lists_its_topics(tmp_path: Path, capsys: pytest.Captur
     assert markers_main([str(bag)]) == 0
     out = capsys.readouterr().out
     assert "/mocap/markers" in out and "geometry_msgs/msg/PoseArray" in out and out.rstrip().endswith("7")
+
+
+def test_the_marker_names_line_pastes_into_yaml(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The printed ``marker_names: [...]`` reads back as the labels, whatever they are.
+
+    It was the labels joined by commas: ``#C7`` began a comment, ``a, b`` became two names and
+    ``yes`` / ``1`` a bool and an int when pasted into the parameter file.
+    """
+    import yaml
+
+    labels = ("RTHI1", "1", "yes", "#C7", "a, b", "null", "[x]", "C7: top", "*star", "R LEG É")
+    path = tmp_path / "odd.trc"
+    write_trc(path, MarkerData(np.zeros((2, len(labels), 3)) + 1.0, labels, 100.0, "mm"))
+    assert markers_main([str(path)]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("marker_names:"))
+    assert yaml.safe_load(line) == {"marker_names": list(labels)}, line

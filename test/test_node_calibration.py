@@ -500,3 +500,42 @@ def test_a_node_loads_its_file_and_save_rewrites_it(calibrated: dict[str, Any], 
     saved = load_node_calibration(path)
     _assert_same(saved, calibrated["doc"])
     assert path.with_name("subject.yaml.bak").read_bytes() == calibrated["path"].read_bytes()
+
+
+def test_jointfit_urdf_takes_a_node_files_units_and_refuses_what_the_node_would_not_load(
+    calibrated: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A node file in mm gives a URDF in metres; a calibration the node refuses gives one line, exit 1.
+
+    ``jointfit urdf`` took every length as metres whatever the node file's ``units`` (a 1000x
+    skeleton from a millimetre fit), and wrote URDFs of not-identifiable, newer-version or zero-axis
+    calibrations (a NaN axis), or stopped with a traceback on a string in a point.
+    """
+    import yaml
+
+    from jointfit_core.urdf import urdf_from_calibrations
+    from jointfit_ros.urdf_cli import urdf_main
+
+    doc = yaml.safe_load(calibrated["path"].read_text())
+    mm = tmp_path / "mm.yaml"
+    mm.write_text(yaml.safe_dump(dict(doc, units="mm"), sort_keys=False))
+    assert urdf_main([str(mm)]) == 0
+    cals = [j["calibration"] for j in doc["joints"].values()]
+    assert capsys.readouterr().out == urdf_from_calibrations(cals, metres_per_unit=1e-3)
+    assert urdf_main([str(mm), str(calibrated["path"])]) == 1  # mm and m together: no common unit
+    assert "different units" in capsys.readouterr().err
+
+    knee = next(c for c in cals if c["kind"] == "hinge")
+    est = knee["estimate"]
+    bad = {
+        "not identifiable": dict(knee, estimate=dict(est, identifiable=False, reason="flex the joint")),
+        "newer version": dict(knee, version=99),
+        "zero axis": dict(knee, estimate=dict(est, direction_parent=[0.0, 0.0, 0.0])),
+        "string point": dict(knee, estimate=dict(est, point_parent=["1e300", 0.0, 0.0])),
+    }
+    for what, calibration in bad.items():
+        path = tmp_path / f"{what.replace(' ', '_')}.yaml"
+        path.write_text(yaml.safe_dump(calibration, sort_keys=False))
+        assert urdf_main([str(path)]) == 1, what
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1 and str(path) in err, (what, err)

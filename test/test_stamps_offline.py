@@ -79,3 +79,23 @@ def test_fit_reader_process_and_one_by_one_agree_on_the_stamps(tmp_path: Path) -
         # the report's time axis goes on over the loop (but for the loop's first frames, which went back)
         assert run.stamps.size == 2 * HALF and np.count_nonzero(np.diff(run.stamps) < 0) == 1
         assert run.stamps[HALF + RESTART_FRAMES - 1] > run.stamps[HALF - 1]
+
+
+def test_a_joint_without_estimate_says_which_frames_were_dropped(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A bag whose messages all carry one stamp: the one-line summary names the dropped frames.
+
+    It said only 'no estimate: building templates from fully visible frames: parent 1/30, child
+    1/30', as if the markers had been hidden, while 1499 of the 1500 frames were dropped for
+    their stamps.
+    """
+    frames, stamps = _recording()
+    topic, msgtype = "/mocap/markers", MSGTYPES["pose_array"]
+    messages = [(topic, msgtype, int(stamps[k]), pose_array_bytes(int(stamps[0]), "world", frames[k]))
+                for k in range(len(frames))]
+    bag = write_raw_bag(tmp_path / "one_stamp", messages)
+    code, stdout, _ = _fit(capsys, "fit", bag, "--config", _config(tmp_path / "params.yaml"), "--out", tmp_path / "out",
+                           "--no-report")
+    assert code == 3
+    lines = [line for line in stdout.splitlines() if "no estimate" in line]
+    assert len(lines) == 2, stdout
+    assert all(f"({len(frames) - 1} stamp not increasing; {len(frames)} frames received)" in line for line in lines), lines
