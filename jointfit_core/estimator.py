@@ -194,6 +194,10 @@ class OnlineJoint(JointSegments):
             attachment=attachment,
         )
         self.gate = settings.gate
+        #: True while the frames given are ones this joint received before (a looped replay, told by the
+        #: caller: :mod:`jointfit_ros.repeated_frames`): they are posed, gated and given outputs, but not
+        #: added to the window (nor to the templates), which would count them as new measurements.
+        self.replayed = False
         #: When a list: ``(frame number, segment (0 parent, 1 child), stamp or NaN)`` of every frame in
         #: which a segment failed the outlier gate (offline reports mark them; None: not kept).
         self.gate_log: list[tuple[int, int, float]] | None = None
@@ -204,6 +208,8 @@ class OnlineJoint(JointSegments):
         super().reset()
         self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
         self.dropped: dict[str, int] = {}
+        #: Frames received again (:attr:`replayed`) and therefore not added to the window.
+        self.replayed_frames = 0
         self.n_frames_seen = 0
         #: The latest :meth:`update` frame's segment poses, after the gate: ``(R (2, 3, 3), d (2, 3),
         #: posed (2,))`` in the templates' frames (``world = R @ local + d``; a segment not posed has
@@ -286,6 +292,9 @@ class OnlineJoint(JointSegments):
         self.n_frames_seen += 1
 
         if not self.templates_ready:
+            if self.replayed:
+                self.replayed_frames += 1
+                return None
             pose.parent.add_template_frame(yp)
             pose.child.add_template_frame(yc)
             self._pending.append((yp.copy(), yc.copy(), st, number))
@@ -387,10 +396,12 @@ class OnlineJoint(JointSegments):
                 self._stats.chained = False
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
-        if ps.parent is not None and ps.child is not None and not self._frozen:
+        if ps.parent is not None and ps.child is not None and not self._frozen and not self.replayed:
             self._stats.add_frame(R, d, ss, ps, stamp, frame_no, Y)
             self._version += 1
         else:
+            if self.replayed and ps.parent is not None and ps.child is not None and not self._frozen:
+                self.replayed_frames += 1
             self._stats.chained = False
         if ps.parent is None or self._solution is None:
             return None

@@ -78,6 +78,7 @@ class InputStatus:
         values["messages with an invalid stamp"] = c["invalid_stamps"]
         values["messages stamped too far ahead (max_stamp_jump)"] = c["stamps_ahead"]
         values["timeline restarts"] = c["timeline_restarts"]
+        values["frames received again (not added to the windows)"] = c["repeated_frames"]
         dropped = {k: c[k] for k in _DROPPED}
         if self._samples is None:
             self._samples = InputActivity(cfg.stale_after)
@@ -91,6 +92,11 @@ class InputStatus:
             message += f"; {c['stamps_ahead'] + c['invalid_stamps']} messages with bad stamps dropped"
         if c["timeline_restarts"]:
             message += f"; the stamps restarted {c['timeline_restarts']} times (looped or restarted recording)"
+        if c["repeated_frames"]:
+            message += (
+                f"; {c['repeated_frames']} frames received again (a looped replay: the same stamps and markers), "
+                "published but not added to the windows again"
+            )
         level, message = self._missed(now, gaps, cfg, level, message, values)
         if act.silent_s is not None and act.silent_s >= cfg.stale_after:
             return STALE, f"no messages for {act.silent_s:.1f} s; {message}"

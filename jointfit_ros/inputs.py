@@ -33,6 +33,7 @@ from .raw import (
     parse_pose_stamped,
     rotation_matrix_from_quaternion,
 )
+from .repeated_frames import RepeatedFrames
 from .runner import JointRunner
 from .stamp_gaps import StampGaps
 from .timeline import Timeline
@@ -201,6 +202,7 @@ def route_frame(
     time_ns: int | None = None,
     *,
     defer_samples: bool = False,
+    replayed: bool = False,
 ) -> list[Routed]:
     """Give one parsed marker frame (P, 3) to the joints in order; their outputs.
 
@@ -209,13 +211,19 @@ def route_frame(
     the estimators' time of the frame (:class:`~jointfit_ros.timeline.Timeline`),
     when it is not ``stamp_ns``; the outputs carry ``stamp_ns``.
     ``defer_samples``: the joints' live-geometry samples are left for
-    :meth:`~jointfit_ros.runner.JointRunner.take_sample`.
+    :meth:`~jointfit_ros.runner.JointRunner.take_sample`. ``replayed``: the
+    frame was received before (:class:`~jointfit_ros.repeated_frames.RepeatedFrames`):
+    its outputs, not added to the windows.
     """
     out = []
     chain: dict[str, FloatArray] = {}
     t = stamp_ns if time_ns is None else time_ns
     for runner in runners:
-        result = runner.markers_frame(t, frame, chain, defer_sample=defer_samples)
+        runner.estimator.replayed = replayed
+        try:
+            result = runner.markers_frame(t, frame, chain, defer_sample=defer_samples)
+        finally:
+            runner.estimator.replayed = False
         if result is not None:
             chain[runner.cfg.name] = result.position
             out.append(Routed(runner, stamp_ns, frame_id, result))
@@ -243,7 +251,9 @@ class MessageRouter:
         labels), ``unassigned`` (markers of unlabelled clouds left without a
         point), ``oversized_clouds`` (unlabelled clouds of more than
         ``max_cloud_points`` points, dropped), and the :attr:`timeline`'s ``invalid_stamps``,
-        ``stamps_ahead`` (dropped) and ``timeline_restarts``.
+        ``stamps_ahead`` (dropped) and ``timeline_restarts``; ``repeated_frames``:
+        marker frames received again (the same stamp and markers: a looped
+        replay), published but not added to the joints' windows (:attr:`repeats`).
     timeline : Timeline
         Checks every message's stamp and gives the joints increasing times
         (``max_stamp_jump``); the outputs carry the input stamps.
@@ -284,8 +294,10 @@ class MessageRouter:
                     self.pose_topics.setdefault(topic, []).append((r, source))
         self.counters = {
             "messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0,
-            "oversized_clouds": 0,
+            "oversized_clouds": 0, "repeated_frames": 0,
         }
+        #: The marker frames received (stamp and markers), to tell a looped replay's frames from new ones.
+        self.repeats = RepeatedFrames()
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
         #: The stamp (ns) of the frame the latest :meth:`markers` gave to the joints; None when it gave none.
@@ -299,8 +311,9 @@ class MessageRouter:
         self.timeline = Timeline(round(cfg.max_stamp_jump * 1e9), clock=clock, counters=self.counters)
 
     def reset(self) -> None:
-        """Forget the unlabelled-cloud prediction (after a reset of the joints)."""
+        """Forget the unlabelled-cloud prediction and the frames received (after a reset of the joints)."""
         self._last_frame = None
+        self.repeats.clear()
 
     def _problem(self, key: str, text: str, counter: str = "malformed") -> None:
         if counter:  # "": counted where it was found (the timeline)
@@ -536,11 +549,18 @@ class MessageRouter:
         index, stamps, frame_ids, frames, problems = (
             parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
         )
+        replayed = self.repeats.repeated_many(real_stamps, frames)
+        self.counters["repeated_frames"] += int(replayed.sum())
         if index.size:
             if self.recorded is not None:
                 self.recorded.extend(zip(stamps.tolist(), frames, strict=True))
-            for runner in self.marker_runners:
-                if runner.matcher is None:
+            unpaired = [r for r in self.marker_runners if r.matcher is None]
+            if replayed.any():  # frames received before (a loop): no new data, frame by frame as markers() gives them
+                for row in range(index.size):
+                    route_frame(unpaired, int(real_stamps[row]), frame_ids[row], frames[row], time_ns=int(stamps[row]),
+                                replayed=bool(replayed[row]))
+            else:
+                for runner in unpaired:
                     runner.markers_block(stamps, frames)
         paired = [r for r in self.marker_runners if r.matcher is not None]
         out: list[Routed] = []
@@ -568,7 +588,11 @@ class MessageRouter:
                 continue
             self.frame_id = frame_ids[row]
             for runner in paired:
-                result = runner.markers_frame(int(stamps[row]), frames[row])
+                runner.estimator.replayed = bool(replayed[row])
+                try:
+                    result = runner.markers_frame(int(stamps[row]), frames[row])
+                finally:
+                    runner.estimator.replayed = False
                 if result is not None:
                     out.append(Routed(runner, int(real_stamps[row]), frame_ids[row], result))
         return out
@@ -599,7 +623,11 @@ class MessageRouter:
         self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
-        return route_frame(self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping)
+        replayed = self.repeats.repeated(stamp_ns, frame)
+        self.counters["repeated_frames"] += replayed
+        return route_frame(
+            self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping, replayed=replayed
+        )
 
     def after_outputs(self) -> None:
         """The bookkeeping :meth:`markers` left with :attr:`defer_bookkeeping`: stamp gaps, live-geometry samples.
