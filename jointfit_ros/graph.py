@@ -63,7 +63,8 @@ def graph_problems(
         same = sum(1 for t in publisher_types.get(topic, ()) if t == wanted)
         if same > 1:
             problems.append(
-                f"{topic} has {same} publishers of {wanted}: their messages interleave into one stream that the "
-                "joints cannot tell apart (a driver started twice, or a replay beside the live driver); stop all but one"
+                f"{topic} has {same} publishers of {wanted}: if more than one sends frames, they interleave into one "
+                "stream that the joints cannot tell apart (a driver started twice, or a replay beside the live driver); "
+                "stop all but one"
             )
     return problems

@@ -89,7 +89,9 @@ def rig(tmp_path: Path) -> Iterator[tuple[_Client, Any, Any]]:
     rigs = make_rigs(11)
     _hip_calibration(params, rigs)
     client = _Client()
-    # reliable, as the node's subscription here: each bad message is sent once and must be counted
+    # reliable, as the node's subscription here: each bad message is sent once and must be counted (in place of
+    # the client's best-effort publisher: two publishers of the marker topic are a WARN of their own)
+    client.node.destroy_publisher(client.pub)
     client.pub = client.node.create_publisher(
         PoseArray, "markers", QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     )
