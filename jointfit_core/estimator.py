@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import joint_blocks, joint_file
+from .calibration_fit import CalibrationFit
 from .checks import check_frame
 from .errors import InputError
 from .frame_clock import FrameClock
@@ -48,7 +49,7 @@ from .joint_outliers import GateLimits, after_failure
 from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
 from .pose import MIN_POSE_MARKERS
-from .segment_pair import poses
+from .segment_pair import PairSet, poses
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
@@ -225,6 +226,8 @@ class OnlineJoint(JointSegments):
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
         self.joint_gated_frames = 0
+        # while frozen: do the markers still fit the calibration's templates (a marker knocked on its cluster)?
+        self._fit = CalibrationFit(self.attachment)
         self._outputs = WorldOutput(self.kind)
 
     def _installed(self) -> None:
@@ -396,6 +399,10 @@ class OnlineJoint(JointSegments):
                 self._stats.chained = False
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
+        if self._frozen and self._misfits(ss, ps):
+            self._drop("markers_off_calibration")
+            self.frame_poses = None
+            return None
         if ps.parent is not None and ps.child is not None and not self._frozen and not self.replayed:
             self._stats.add_frame(R, d, ss, ps, stamp, frame_no, Y)
             self._version += 1
@@ -407,6 +414,32 @@ class OnlineJoint(JointSegments):
             return None
         child_pose = (R[1], d[1], ps.child) if ps.child is not None else None
         return self._outputs.output(self._solution, self._sigma, R[0], d[0], ps.parent, child_pose)
+
+    def _misfits(self, ss: FloatArray, ps: PairSet) -> bool:
+        """A frozen joint's frame: whether its segments' recent pose-fit residual is beyond the calibration's noise.
+
+        :class:`~jointfit_core.calibration_fit.CalibrationFit`; its words in :attr:`calibration_problem`.
+        """
+        for k, vs in enumerate((ps.parent, ps.child)):
+            if vs is not None:
+                self._fit.add(k, float(ss[k]), float(vs.dof), self._sigma[k])
+        return bool(self._fit.problem)
+
+    @property
+    def calibration_problem(self) -> str:
+        """Empty while a frozen joint's markers fit its calibration; else why its outputs are withheld."""
+        return self._fit.problem if self._frozen else ""
+
+    def freeze(self) -> Any:
+        """:meth:`JointEstimate.freeze <jointfit_core.joint_estimate.JointEstimate.freeze>`; the markers are judged against it from now."""
+        sol = super().freeze()
+        self._fit.restart()
+        return sol
+
+    def thaw(self) -> None:
+        """:meth:`JointEstimate.thaw <jointfit_core.joint_estimate.JointEstimate.thaw>`; a later freeze judges afresh."""
+        super().thaw()
+        self._fit.restart()
 
     def _joint_fails(self, R: FloatArray, d: FloatArray, frame_no: int, stamp: float | None) -> bool:
         """The joint test (:mod:`jointfit_core.joint_gate`) of a frame posed ``R`` (2, 3, 3), ``d`` (2, 3); counts a failure."""

@@ -211,6 +211,8 @@ def _estimate_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: st
 def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str) -> str:
     """The status's warning, the first that applies in order of precedence (empty: none)."""
     est, cfg = runner.estimator, runner.cfg
+    if est.calibration_problem:  # first: every output is withheld
+        return est.calibration_problem
     gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
     if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
         return gated
