@@ -98,3 +98,23 @@ def fake_rig_values(**extra: Any) -> dict[str, Any]:
     }
     values.update(extra)
     return values
+
+
+def rig_frames(n: int, seed: int = 3, rig_seed: int = 3) -> NDArray[np.float64]:
+    """``n`` frames (m) of the fake mocap's rigs (:func:`~jointfit_ros.fake_mocap.make_rigs` ``rig_seed``) at 250 Hz, 0.5 mm noise."""
+    from jointfit_ros.fake_mocap import frame_at, make_rigs
+
+    rigs = make_rigs(rig_seed)
+    rng = np.random.default_rng(seed)
+    return np.stack([frame_at(rigs, k * 0.004, rng, 0.5, 0.0) for k in range(n)]) / 1000.0
+
+
+def rig_router(**extra: Any) -> tuple[Any, list[Any]]:
+    """A :class:`~jointfit_ros.inputs.MessageRouter` and its runners for the fake rigs' node values (:func:`fake_rig_values`)."""
+    from jointfit_ros.inputs import MessageRouter
+    from jointfit_ros.params import node_config
+    from jointfit_ros.runner import JointRunner
+
+    cfg = node_config(fake_rig_values(**extra))
+    runners = [JointRunner(j, cfg) for j in cfg.joints]
+    return MessageRouter(cfg, runners), runners

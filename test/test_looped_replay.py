@@ -9,35 +9,18 @@ is new data and goes on into the windows as before (``test/test_timeline.py``).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import pytest
-from helpers import fake_rig_values
+from helpers import rig_frames, rig_router
 
-from jointfit_ros.fake_mocap import frame_at, make_rigs
 from jointfit_ros.inputs import MessageRouter
-from jointfit_ros.params import node_config
 from jointfit_ros.raw import pose_array_bytes
 from jointfit_ros.repeated_frames import RepeatedFrames
-from jointfit_ros.runner import JointRunner
 from jointfit_ros.timeline import RESTART_FRAMES
 
 S = 1_000_000_000
 STEP = 4_000_000  # 250 Hz
 N = 500  # a 2 s bag
-
-
-def _frames(n: int, seed: int) -> np.ndarray:
-    rigs = make_rigs(3)
-    rng = np.random.default_rng(seed)
-    return np.stack([frame_at(rigs, k * 0.004, rng, 0.5, 0.0) for k in range(n)]) / 1000.0
-
-
-def _router(**extra: Any) -> tuple[MessageRouter, list[JointRunner]]:
-    cfg = node_config(fake_rig_values(**extra))
-    runners = [JointRunner(j, cfg) for j in cfg.joints]
-    return MessageRouter(cfg, runners), runners
 
 
 def _messages(frames: np.ndarray) -> list[bytes]:
@@ -57,8 +40,8 @@ def _feed(router: MessageRouter, msgs: list[bytes], block: bool) -> int:
 
 @pytest.mark.parametrize("block", [False, True])
 def test_loops_of_the_same_frames_leave_the_window_and_the_covariance_as_after_one_pass(block: bool) -> None:
-    router, runners = _router(**{"hip.window_s": 10.0, "knee.window_s": 10.0})
-    msgs = _messages(_frames(N, 1))
+    router, runners = rig_router(**{"hip.window_s": 10.0, "knee.window_s": 10.0})
+    msgs = _messages(rig_frames(N, 1))
     _feed(router, msgs, block)
     first = {}
     for r in runners:
@@ -88,18 +71,18 @@ def test_loops_of_the_same_frames_leave_the_window_and_the_covariance_as_after_o
 
 
 def test_a_recording_restarted_with_new_markers_is_new_data() -> None:
-    router, runners = _router(**{"hip.window_s": 10.0, "knee.window_s": 10.0})
-    _feed(router, _messages(_frames(N, 1)), False)
+    router, runners = rig_router(**{"hip.window_s": 10.0, "knee.window_s": 10.0})
+    _feed(router, _messages(rig_frames(N, 1)), False)
     hip = runners[0]
     n_first = hip.estimator.n_window
-    _feed(router, _messages(_frames(N, 2)), False)  # the same stamps again, other noise: a new take
+    _feed(router, _messages(rig_frames(N, 2)), False)  # the same stamps again, other noise: a new take
     assert router.counters["timeline_restarts"] == 1 and router.counters["repeated_frames"] == 0
     assert hip.estimator.n_window == n_first + N - (RESTART_FRAMES - 1)
 
 
 def test_after_a_reset_the_looped_frames_are_new_to_the_emptied_windows() -> None:
-    router, runners = _router()
-    msgs = _messages(_frames(N, 1))
+    router, runners = rig_router()
+    msgs = _messages(rig_frames(N, 1))
     _feed(router, msgs, False)
     for r in runners:
         r.reset()

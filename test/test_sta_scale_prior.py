@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import template_rotation, truth_in_template
 from scipy.stats import chi2
 
 from jointfit_core.artefact import PRIOR_NU, RIGID_SHARE, _prior_variances, posterior_scale2, prior_scale2
@@ -23,14 +24,6 @@ RATE = 100.0
 #: "Many sd off": the truth outside the published covariance's 99.9 % ellipsoid (e/k above this).
 E3_OUT = float(chi2.ppf(0.999, 3)) / 3.0  # 5.4
 E2_OUT = float(chi2.ppf(0.999, 2)) / 2.0  # 6.9
-
-
-def _to_estimated_frame(template_true: np.ndarray, template_est: np.ndarray, point: np.ndarray) -> np.ndarray:
-    mu_t, mu_e = template_true.mean(axis=0), template_est.mean(axis=0)
-    u, _, vt = np.linalg.svd((template_true - mu_t).T @ (template_est - mu_e))
-    fix = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(vt.T @ u.T)))])
-    out: np.ndarray = vt.T @ fix @ u.T @ (point - mu_t) + mu_e
-    return out
 
 
 def test_posterior_is_the_conjugate_update() -> None:
@@ -85,7 +78,7 @@ def _batch_hip(seed_index: int, n_trials: int, amplitude: float) -> tuple[float,
     t = np.arange(3000) / RATE
     p, c = skin_markers_at(rng, motion, t, child_mm=10.0, noise_std=noise)
     fit = fit_centre_two_segments(p, c, attachment="skin")
-    delta = fit.centre_parent - _to_estimated_frame(motion.template_parent, fit.template_parent, motion.centre_parent)
+    delta = fit.centre_parent - truth_in_template(motion.template_parent, fit.template_parent, motion.centre_parent)
     return float(delta @ np.linalg.solve(fit.cov_parent, delta) / 3.0), bool(fit.identifiable)
 
 
@@ -119,10 +112,7 @@ def test_online_knee_whose_scale_read_low_is_not_confidently_wrong() -> None:
     sol = est.estimate()
     tp = est.templates[0]
     assert tp is not None
-    mu_t, mu_e = motion.template_parent.mean(axis=0), tp.mean(axis=0)
-    u, _, vt = np.linalg.svd((motion.template_parent - mu_t).T @ (tp - mu_e))
-    R = vt.T @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(vt.T @ u.T)))]) @ u.T
-    n_true = R @ motion.axis
+    n_true = template_rotation(motion.template_parent, tp) @ motion.axis
     n_true = n_true if float(n_true @ sol.direction_parent) >= 0.0 else -n_true
     delta = sol.direction_parent - n_true
     e = float(delta @ np.linalg.pinv(sol.cov_direction_parent) @ delta) / 2.0

@@ -9,14 +9,11 @@ is passed on for the estimators to drop, as before.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import pytest
-from helpers import fake_rig_values
+from helpers import rig_frames, rig_router
 
 from jointfit_ros.activity import InputActivity
-from jointfit_ros.fake_mocap import frame_at, make_rigs
 from jointfit_ros.inputs import MessageRouter
 from jointfit_ros.params import node_config
 from jointfit_ros.raw import ConversionError, parse_pose_array, parse_pose_arrays, pose_array_bytes
@@ -170,22 +167,10 @@ def test_nanosec_of_1e9_or_more_is_malformed_per_message_and_in_blocks() -> None
 
 # --------------------------------------------------------------------------- through the router
 
-def _rig_frames(n: int, seed: int = 3) -> np.ndarray:
-    rigs = make_rigs(seed)
-    rng = np.random.default_rng(seed)
-    return np.stack([frame_at(rigs, k * 0.004, rng, 0.5, 0.0) for k in range(n)]) / 1000.0
-
-
-def _router(**extra: Any) -> tuple[MessageRouter, list[JointRunner]]:
-    cfg = node_config(fake_rig_values(**extra))
-    runners = [JointRunner(j, cfg) for j in cfg.joints]
-    return MessageRouter(cfg, runners), runners
-
-
 @pytest.mark.parametrize("block", [False, True])
 def test_router_loop_keeps_estimating_and_outputs_carry_the_real_stamps(block: bool) -> None:
-    router, runners = _router(**{"hip.window_s": 1.0, "hip.template_frames": 20})
-    frames = _rig_frames(500)
+    router, runners = rig_router(**{"hip.window_s": 1.0, "hip.template_frames": 20})
+    frames = rig_frames(500)
     stamps = _stamps(100 * S, 500)
     msgs = [pose_array_bytes(s, "world", f) for s, f in zip(stamps + stamps, np.concatenate([frames, frames]), strict=True)]
     hip = runners[0]
@@ -213,8 +198,8 @@ def test_router_loop_keeps_estimating_and_outputs_carry_the_real_stamps(block: b
 
 
 def test_router_single_bad_stamp_then_frozen_joint_goes_on() -> None:
-    router, runners = _router()
-    frames = _rig_frames(400)
+    router, runners = rig_router()
+    frames = rig_frames(400)
     stamps = _stamps(100 * S, 400)
     msgs = [pose_array_bytes(s, "world", f) for s, f in zip(stamps, frames, strict=True)]
     for raw in msgs[:300]:
@@ -245,8 +230,8 @@ def test_activity_rate_falls_to_zero_and_silence_is_measured() -> None:
 
 
 def test_joint_status_is_stale_after_silence_and_warns_when_all_is_dropped() -> None:
-    router, runners = _router()
-    frames = _rig_frames(400)
+    router, runners = rig_router()
+    frames = rig_frames(400)
     stamps = _stamps(100 * S, 400)
     for s, f in zip(stamps[:300], frames[:300], strict=True):
         router.markers(pose_array_bytes(s, "world", f))
