@@ -556,9 +556,9 @@ class MessageRouter:
                 self.recorded.extend(zip(stamps.tolist(), frames, strict=True))
             unpaired = [r for r in self.marker_runners if r.matcher is None]
             if replayed.any():  # frames received before (a loop): no new data, frame by frame as markers() gives them
-                for row in range(index.size):
-                    route_frame(unpaired, int(real_stamps[row]), frame_ids[row], frames[row], time_ns=int(stamps[row]),
-                                replayed=bool(replayed[row]))
+                for k in range(index.size):
+                    route_frame(unpaired, int(real_stamps[k]), frame_ids[k], frames[k], time_ns=int(stamps[k]),
+                                replayed=bool(replayed[k]))
             else:
                 for runner in unpaired:
                     runner.markers_block(stamps, frames)
