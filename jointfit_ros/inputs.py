@@ -33,7 +33,7 @@ from .raw import (
     parse_pose_stamped,
     rotation_matrix_from_quaternion,
 )
-from .repeated_frames import RepeatedFrames
+from .repeated_frames import RepeatedFrames, window_horizon
 from .runner import JointRunner
 from .stamp_gaps import StampGaps
 from .timeline import Timeline
@@ -298,6 +298,7 @@ class MessageRouter:
         }
         #: The marker frames received (stamp and markers), to tell a looped replay's frames from new ones.
         self.repeats = RepeatedFrames()
+        self._horizon = (-1.0, float("inf"))  # (frame period it was taken at, ns; the horizon, ns)
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
         #: The stamp (ns) of the frame the latest :meth:`markers` gave to the joints; None when it gave none.
@@ -314,6 +315,17 @@ class MessageRouter:
         """Forget the unlabelled-cloud prediction and the frames received (after a reset of the joints)."""
         self._last_frame = None
         self.repeats.clear()
+
+    def _horizon_ns(self) -> float:
+        """How long a frame may stay in the marker joints' longest window (ns): :class:`RepeatedFrames`' horizon.
+
+        Taken again only when the stream's measured frame period changes (windows in frames need it).
+        """
+        period_ns = self.gaps.period_s * 1e9
+        if period_ns != self._horizon[0]:
+            windows = [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r in self.marker_runners]
+            self._horizon = (period_ns, window_horizon(windows, period_ns))
+        return self._horizon[1]
 
     def _problem(self, key: str, text: str, counter: str = "malformed") -> None:
         if counter:  # "": counted where it was found (the timeline)
@@ -549,7 +561,7 @@ class MessageRouter:
         index, stamps, frame_ids, frames, problems = (
             parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
         )
-        replayed = self.repeats.repeated_many(real_stamps, frames)
+        replayed = self.repeats.repeated_many(real_stamps, frames, stamps, self._horizon_ns())
         self.counters["repeated_frames"] += int(replayed.sum())
         if index.size:
             if self.recorded is not None:
@@ -623,7 +635,7 @@ class MessageRouter:
         self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
-        replayed = self.repeats.repeated(stamp_ns, frame)
+        replayed = self.repeats.repeated(stamp_ns, frame, t, self._horizon_ns())
         self.counters["repeated_frames"] += replayed
         return route_frame(
             self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping, replayed=replayed

@@ -15,7 +15,7 @@ from helpers import rig_frames, rig_router
 
 from jointfit_ros.inputs import MessageRouter
 from jointfit_ros.raw import pose_array_bytes
-from jointfit_ros.repeated_frames import RepeatedFrames
+from jointfit_ros.repeated_frames import RepeatedFrames, window_horizon
 from jointfit_ros.timeline import RESTART_FRAMES
 
 S = 1_000_000_000
@@ -95,10 +95,39 @@ def test_after_a_reset_the_looped_frames_are_new_to_the_emptied_windows() -> Non
 def test_memory_forgets_the_oldest_frames() -> None:
     memory = RepeatedFrames(capacity=3)
     frame = np.zeros((2, 3))
+    inf = float("inf")
     for k in range(4):
-        assert not memory.repeated(k, frame + k)
-    assert not memory.repeated(0, frame)  # forgotten: taken as new
-    assert memory.repeated(3, frame + 3) and memory.count == 1
-    assert not memory.repeated(3, frame + 4)  # the same stamp, other markers: new
+        assert not memory.repeated(k, frame + k, 100 + k, inf)
+    assert not memory.repeated(0, frame, 200, inf)  # forgotten: taken as new
+    assert memory.repeated(3, frame + 3, 201, inf) and memory.count == 1
+    assert not memory.repeated(3, frame + 4, 202, inf)  # the same stamp, other markers: new
     stamps = np.array([10, 3, 10])
-    assert memory.repeated_many(stamps, np.stack([frame, frame + 4, frame])).tolist() == [False, True, True]
+    times = np.array([300, 301, 302])
+    assert memory.repeated_many(stamps, np.stack([frame, frame + 4, frame]), times, inf).tolist() == [False, True, True]
+
+
+def test_a_frame_enters_again_once_its_first_copy_has_left_the_longest_window() -> None:
+    memory = RepeatedFrames()
+    frame = np.ones((2, 3))
+    assert not memory.repeated(7, frame, 0, 1000.0)
+    assert memory.repeated(7, frame, 999, 1000.0)  # still in the window: a repeat
+    assert not memory.repeated(7, frame, 1000, 1000.0)  # left it: enters again, from now
+    assert memory.repeated(7, frame, 1999, 1000.0)
+    assert window_horizon([(300, 0.0, 0.0), (0, 2.0, 0.0), (0, 0.0, 1.0)], 1e7) == pytest.approx(5e9)
+    assert window_horizon([(3000, 0.0, 0.0)], 1e7) == pytest.approx(3e10)
+    assert window_horizon([(3000, 0.0, 0.0)], 0.0) == float("inf")  # the frame period not known yet
+
+
+def test_a_window_shorter_than_the_loop_keeps_one_copy_of_every_frame() -> None:
+    """A 1 s window over a looped 2 s bag: the window stays full (each frame once), and the joint estimates."""
+    router, runners = rig_router(**{"hip.window_s": 1.0, "knee.window_s": 1.0})
+    msgs = _messages(rig_frames(N, 1))
+    for _ in range(3):
+        _feed(router, msgs, False)
+    for r in runners:
+        assert 0.9 * 250 <= r.estimator.n_window <= 250 + 1, (r.cfg.name, r.estimator.n_window)
+        assert r.estimate(force=True)
+    # every looped frame the joints took had left the 1 s window (the router recognises only the few before
+    # each restart, whose stamps go back and which the joints drop anyway)
+    assert all(r.estimator.replayed_frames == 0 for r in runners)
+    assert router.counters["repeated_frames"] <= 2 * (RESTART_FRAMES - 1)
