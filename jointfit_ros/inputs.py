@@ -202,7 +202,7 @@ def route_frame(
     time_ns: int | None = None,
     *,
     defer_samples: bool = False,
-    replayed: bool = False,
+    replayed: NDArray[np.bool_] | None = None,
 ) -> list[Routed]:
     """Give one parsed marker frame (P, 3) to the joints in order; their outputs.
 
@@ -211,15 +211,15 @@ def route_frame(
     the estimators' time of the frame (:class:`~jointfit_ros.timeline.Timeline`),
     when it is not ``stamp_ns``; the outputs carry ``stamp_ns``.
     ``defer_samples``: the joints' live-geometry samples are left for
-    :meth:`~jointfit_ros.runner.JointRunner.take_sample`. ``replayed``: the
-    frame was received before (:class:`~jointfit_ros.repeated_frames.RepeatedFrames`):
-    its outputs, not added to the windows.
+    :meth:`~jointfit_ros.runner.JointRunner.take_sample`. ``replayed``: per
+    runner, the frame is still in its window from before (a looped replay,
+    :class:`~jointfit_ros.repeated_frames.RepeatedFrames`): its output, not added again.
     """
     out = []
     chain: dict[str, FloatArray] = {}
     t = stamp_ns if time_ns is None else time_ns
-    for runner in runners:
-        runner.estimator.replayed = replayed
+    for k, runner in enumerate(runners):
+        runner.estimator.replayed = replayed is not None and bool(replayed[k])
         try:
             result = runner.markers_frame(t, frame, chain, defer_sample=defer_samples)
         finally:
@@ -297,8 +297,8 @@ class MessageRouter:
             "oversized_clouds": 0, "repeated_frames": 0,
         }
         #: The marker frames received (stamp and markers), to tell a looped replay's frames from new ones.
-        self.repeats = RepeatedFrames()
-        self._horizon = (-1.0, float("inf"))  # (frame period it was taken at, ns; the horizon, ns)
+        self.repeats = RepeatedFrames(len(self.marker_runners))
+        self._horizons = (-1.0, np.zeros(0))  # (frame period they were taken at, ns; per marker joint, ns)
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
         #: The stamp (ns) of the frame the latest :meth:`markers` gave to the joints; None when it gave none.
@@ -316,16 +316,16 @@ class MessageRouter:
         self._last_frame = None
         self.repeats.clear()
 
-    def _horizon_ns(self) -> float:
-        """How long a frame may stay in the marker joints' longest window (ns): :class:`RepeatedFrames`' horizon.
+    def _horizons_ns(self) -> NDArray[np.float64]:
+        """How long a frame may stay in each marker joint's window (ns): :meth:`RepeatedFrames.fresh`'s horizons.
 
         Taken again only when the stream's measured frame period changes (windows in frames need it).
         """
         period_ns = self.gaps.period_s * 1e9
-        if period_ns != self._horizon[0]:
+        if period_ns != self._horizons[0]:
             windows = [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r in self.marker_runners]
-            self._horizon = (period_ns, window_horizon(windows, period_ns))
-        return self._horizon[1]
+            self._horizons = (period_ns, window_horizon(windows, period_ns))
+        return self._horizons[1]
 
     def _problem(self, key: str, text: str, counter: str = "malformed") -> None:
         if counter:  # "": counted where it was found (the timeline)
@@ -561,16 +561,18 @@ class MessageRouter:
         index, stamps, frame_ids, frames, problems = (
             parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
         )
-        replayed = self.repeats.repeated_many(real_stamps, frames, stamps, self._horizon_ns())
-        self.counters["repeated_frames"] += int(replayed.sum())
+        replayed = ~self.repeats.fresh_many(real_stamps, frames, stamps, self._horizons_ns())  # (K, marker joints)
+        self.counters["repeated_frames"] = self.repeats.count
+        column = {id(r): j for j, r in enumerate(self.marker_runners)}
         if index.size:
             if self.recorded is not None:
                 self.recorded.extend(zip(stamps.tolist(), frames, strict=True))
             unpaired = [r for r in self.marker_runners if r.matcher is None]
             if replayed.any():  # frames received before (a loop): no new data, frame by frame as markers() gives them
+                cols = [column[id(r)] for r in unpaired]
                 for k in range(index.size):
                     route_frame(unpaired, int(real_stamps[k]), frame_ids[k], frames[k], time_ns=int(stamps[k]),
-                                replayed=bool(replayed[k]))
+                                replayed=replayed[k, cols])
             else:
                 for runner in unpaired:
                     runner.markers_block(stamps, frames)
@@ -600,7 +602,7 @@ class MessageRouter:
                 continue
             self.frame_id = frame_ids[row]
             for runner in paired:
-                runner.estimator.replayed = bool(replayed[row])
+                runner.estimator.replayed = bool(replayed[row, column[id(runner)]])
                 try:
                     result = runner.markers_frame(int(stamps[row]), frames[row])
                 finally:
@@ -635,10 +637,11 @@ class MessageRouter:
         self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
-        replayed = self.repeats.repeated(stamp_ns, frame, t, self._horizon_ns())
-        self.counters["repeated_frames"] += replayed
+        fresh = self.repeats.fresh(stamp_ns, frame, t, self._horizons_ns())
+        self.counters["repeated_frames"] = self.repeats.count
         return route_frame(
-            self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping, replayed=replayed
+            self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping,
+            replayed=None if fresh.all() else ~fresh,
         )
 
     def after_outputs(self) -> None:

@@ -9,12 +9,12 @@ covariance shrinks with every loop while the error stays: measured on the
 live node, a hip calibration saved after a minute of ``--loop --rate max``
 of a 20 s bag was 5.9-8.2 sd off (the status said OK). :class:`RepeatedFrames`
 remembers the stamp and a digest of the markers of the latest frames, and
-when each entered, so that the router can tell such a frame (the same stamp,
-the same markers, bit for bit) from a new one while its first copy may still
-be in a window (:attr:`RepeatedFrames.horizon_ns`): the joints publish its
-outputs but do not add it to their windows. Once the first copy has left the
-longest window, the frame enters again, so that a window shorter than the loop
-keeps a copy of every frame and one longer than it never holds two. A
+when each joint last took each, so that the router can tell such a frame (the
+same stamp, the same markers, bit for bit) from a new one while a joint's copy
+may still be in its window (:meth:`RepeatedFrames.fresh`): the joint publishes
+its output but does not add it again. Once its copy has left its window, the
+frame enters again, so that a window shorter than the loop keeps a copy of
+every frame and one longer than it never holds two. A
 recording that restarts its stamps with new markers is new data and is added
 as before.
 """
@@ -35,35 +35,42 @@ REPEAT_MEMORY = 1 << 17
 
 
 class RepeatedFrames:
-    """The stamps and marker digests of the latest frames received, to tell a frame received again.
+    """The stamps and marker digests of the latest frames received, and when each joint last took each.
 
     Parameters
     ----------
+    n_joints : int
+        The joints the frames go to (each has its own window, so its own horizon).
     capacity : int
         Frames remembered (oldest forgotten first).
 
     Attributes
     ----------
     count : int
-        Frames recognised as received before, since the start (or :meth:`clear`).
+        Frames that some joint did not take again, since the start (or :meth:`clear`).
     """
 
-    def __init__(self, capacity: int = REPEAT_MEMORY) -> None:
+    def __init__(self, n_joints: int, capacity: int = REPEAT_MEMORY) -> None:
+        self.n_joints = int(n_joints)
         self.capacity = int(capacity)
-        self._digest: dict[int, tuple[int, int]] = {}  # stamp -> (digest, time it entered the windows)
+        # stamp -> (digest, per joint the time (ns, time line) it last took the frame)
+        self._seen: dict[int, tuple[int, NDArray[np.float64]]] = {}
         self._order: deque[int] = deque()
         self.count = 0
 
     def clear(self) -> None:
         """Forget every frame (the joints' windows were emptied: what comes next is new to them)."""
-        self._digest.clear()
+        self._seen.clear()
         self._order.clear()
         self.count = 0
 
-    def repeated(self, stamp_ns: int, frame: NDArray[np.float64], time_ns: int, horizon_ns: float) -> bool:
-        """Whether a frame of this stamp and these markers (bit for bit) entered the windows less than ``horizon_ns`` ago.
+    def fresh(
+        self, stamp_ns: int, frame: NDArray[np.float64], time_ns: int, horizons_ns: NDArray[np.float64]
+    ) -> NDArray[np.bool_]:
+        """Per joint, whether this frame is new to its window; the joints it is new to take it now.
 
-        If not, it enters now (it is remembered with ``time_ns``).
+        A frame of this stamp and these markers (bit for bit) that a joint took less than its
+        horizon ago may still be in its window: not new to it.
 
         Parameters
         ----------
@@ -73,37 +80,45 @@ class RepeatedFrames:
             Its markers (NaN where missing).
         time_ns : int
             Its time on the time line (which goes on over a loop).
-        horizon_ns : float
-            How long a frame may stay in the longest window (``inf``: for ever).
+        horizons_ns : ndarray, shape (n_joints,)
+            How long a frame may stay in each joint's window (``inf``: for ever; :func:`window_horizon`).
+
+        Returns
+        -------
+        ndarray of bool, shape (n_joints,)
         """
         digest = hash(np.ascontiguousarray(frame).tobytes())
-        known = self._digest.get(stamp_ns)
-        if known is not None and known[0] == digest and time_ns - known[1] < horizon_ns:
-            self.count += 1
-            return True
+        known = self._seen.get(stamp_ns)
+        if known is not None and known[0] == digest:
+            taken = known[1]
+            new = (time_ns - taken) >= horizons_ns
+            taken[new] = time_ns
+            if not new.all():
+                self.count += 1
+            return new
         if known is None:
             self._order.append(stamp_ns)
             if len(self._order) > self.capacity:
-                self._digest.pop(self._order.popleft(), None)
-        self._digest[stamp_ns] = (digest, time_ns)
-        return False
+                self._seen.pop(self._order.popleft(), None)
+        self._seen[stamp_ns] = (digest, np.full(self.n_joints, float(time_ns)))
+        return np.ones(self.n_joints, dtype=bool)
 
-    def repeated_many(
-        self, stamps_ns: NDArray[np.int64], frames: NDArray[np.float64], times_ns: NDArray[np.int64], horizon_ns: float
+    def fresh_many(
+        self,
+        stamps_ns: NDArray[np.int64],
+        frames: NDArray[np.float64],
+        times_ns: NDArray[np.int64],
+        horizons_ns: NDArray[np.float64],
     ) -> NDArray[np.bool_]:
-        """:meth:`repeated` of each frame of a block (K,), (K, P, 3), (K,), in order."""
-        return np.fromiter(
-            (self.repeated(int(s), f, int(t), horizon_ns)
-             for s, f, t in zip(stamps_ns.tolist(), frames, times_ns.tolist(), strict=True)),
-            dtype=bool,
-            count=len(stamps_ns),
-        )
+        """:meth:`fresh` of each frame of a block (K,), (K, P, 3), (K,), in order: (K, n_joints)."""
+        out = np.ones((len(stamps_ns), self.n_joints), dtype=bool)
+        for k, (s, t) in enumerate(zip(stamps_ns.tolist(), times_ns.tolist(), strict=True)):
+            out[k] = self.fresh(int(s), frames[k], int(t), horizons_ns)
+        return out
 
 
-def window_horizon(
-    windows: list[tuple[int, float, float]], frame_interval_ns: float
-) -> float:
-    """How long (ns) a frame may stay in the longest of some windows: :attr:`RepeatedFrames.repeated`'s horizon.
+def window_horizon(windows: list[tuple[int, float, float]], frame_interval_ns: float) -> NDArray[np.float64]:
+    """How long (ns) a frame may stay in each of some windows: :meth:`RepeatedFrames.fresh`'s horizons.
 
     Parameters
     ----------
@@ -111,13 +126,13 @@ def window_horizon(
         Per joint, ``(window frames, window_s, half_life_s)`` as configured (one of them in use: ``window_s``
         if positive, else ``half_life_s``, else ``window``).
     frame_interval_ns : float
-        The stream's frame interval (ns), for windows in frames.
+        The stream's frame interval (ns), for windows in frames (0: not known yet).
 
     Returns
     -------
-    float
-        The largest span: ``window_s``, 5 half-lives (a weight of 3 %), or ``window`` frames; ``inf`` when
-        none can be told (no joint, or a window in frames before an interval is known).
+    ndarray, shape (n_joints,)
+        ``window_s``, 5 half-lives (a weight of 3 %), or ``window`` frames; ``inf`` for a window in frames
+        before the interval is known.
     """
     spans = []
     for frames, seconds, half_life in windows:
@@ -127,4 +142,4 @@ def window_horizon(
             spans.append(5.0 * half_life * 1e9)
         else:
             spans.append(frames * frame_interval_ns if frame_interval_ns > 0.0 else math.inf)
-    return max(spans) if spans else math.inf
+    return np.array(spans, dtype=np.float64)

@@ -93,41 +93,45 @@ def test_after_a_reset_the_looped_frames_are_new_to_the_emptied_windows() -> Non
 
 
 def test_memory_forgets_the_oldest_frames() -> None:
-    memory = RepeatedFrames(capacity=3)
+    memory = RepeatedFrames(1, capacity=3)
     frame = np.zeros((2, 3))
-    inf = float("inf")
+    inf = np.array([np.inf])
     for k in range(4):
-        assert not memory.repeated(k, frame + k, 100 + k, inf)
-    assert not memory.repeated(0, frame, 200, inf)  # forgotten: taken as new
-    assert memory.repeated(3, frame + 3, 201, inf) and memory.count == 1
-    assert not memory.repeated(3, frame + 4, 202, inf)  # the same stamp, other markers: new
+        assert memory.fresh(k, frame + k, 100 + k, inf).all()
+    assert memory.fresh(0, frame, 200, inf).all()  # forgotten: taken as new
+    assert not memory.fresh(3, frame + 3, 201, inf).any() and memory.count == 1
+    assert memory.fresh(3, frame + 4, 202, inf).all()  # the same stamp, other markers: new
     stamps = np.array([10, 3, 10])
     times = np.array([300, 301, 302])
-    assert memory.repeated_many(stamps, np.stack([frame, frame + 4, frame]), times, inf).tolist() == [False, True, True]
+    got = memory.fresh_many(stamps, np.stack([frame, frame + 4, frame]), times, inf)
+    assert got[:, 0].tolist() == [True, False, False]
 
 
-def test_a_frame_enters_again_once_its_first_copy_has_left_the_longest_window() -> None:
-    memory = RepeatedFrames()
+def test_each_joint_takes_a_frame_again_once_its_copy_has_left_its_window() -> None:
+    """Two joints, windows of 1000 and 3000 ns: a frame taken at 0 is new to the first at 1000, to the second at 3000."""
+    memory = RepeatedFrames(2)
     frame = np.ones((2, 3))
-    assert not memory.repeated(7, frame, 0, 1000.0)
-    assert memory.repeated(7, frame, 999, 1000.0)  # still in the window: a repeat
-    assert not memory.repeated(7, frame, 1000, 1000.0)  # left it: enters again, from now
-    assert memory.repeated(7, frame, 1999, 1000.0)
-    assert window_horizon([(300, 0.0, 0.0), (0, 2.0, 0.0), (0, 0.0, 1.0)], 1e7) == pytest.approx(5e9)
-    assert window_horizon([(3000, 0.0, 0.0)], 1e7) == pytest.approx(3e10)
-    assert window_horizon([(3000, 0.0, 0.0)], 0.0) == float("inf")  # the frame period not known yet
+    horizons = np.array([1000.0, 3000.0])
+    assert memory.fresh(7, frame, 0, horizons).tolist() == [True, True]
+    assert memory.fresh(7, frame, 999, horizons).tolist() == [False, False]
+    assert memory.fresh(7, frame, 1000, horizons).tolist() == [True, False]  # left the first's window
+    assert memory.fresh(7, frame, 1999, horizons).tolist() == [False, False]  # its new copy is there now
+    assert memory.fresh(7, frame, 3000, horizons).tolist() == [True, True]
+    np.testing.assert_allclose(window_horizon([(300, 0.0, 0.0), (0, 2.0, 0.0), (0, 0.0, 1.0)], 1e7), [3e9, 2e9, 5e9])
+    assert window_horizon([(3000, 0.0, 0.0)], 0.0)[0] == np.inf  # the frame period not known yet
 
 
 def test_a_window_shorter_than_the_loop_keeps_one_copy_of_every_frame() -> None:
-    """A 1 s window over a looped 2 s bag: the window stays full (each frame once), and the joint estimates."""
-    router, runners = rig_router(**{"hip.window_s": 1.0, "knee.window_s": 1.0})
+    """A 1 s window over a looped 2 s bag: the window stays full (each frame once), and the joint estimates.
+
+    The other joint's window is 10 s: its horizon does not hold the first joint's frames back.
+    """
+    router, runners = rig_router(**{"hip.window_s": 1.0, "knee.window_s": 10.0})
     msgs = _messages(rig_frames(N, 1))
     for _ in range(3):
         _feed(router, msgs, False)
-    for r in runners:
-        assert 0.9 * 250 <= r.estimator.n_window <= 250 + 1, (r.cfg.name, r.estimator.n_window)
-        assert r.estimate(force=True)
-    # every looped frame the joints took had left the 1 s window (the router recognises only the few before
-    # each restart, whose stamps go back and which the joints drop anyway)
-    assert all(r.estimator.replayed_frames == 0 for r in runners)
-    assert router.counters["repeated_frames"] <= 2 * (RESTART_FRAMES - 1)
+    hip, knee = runners
+    assert 0.9 * 250 <= hip.estimator.n_window <= 250 + 1, hip.estimator.n_window
+    assert hip.estimator.replayed_frames == 0  # every looped frame had left its 1 s window
+    assert knee.estimator.n_window == N  # each frame once in its 10 s window
+    assert all(r.estimate(force=True) for r in runners)
