@@ -203,6 +203,7 @@ def route_frame(
     *,
     defer_samples: bool = False,
     replayed: NDArray[np.bool_] | None = None,
+    on_error: Callable[[JointRunner, Exception], None] | None = None,
 ) -> list[Routed]:
     """Give one parsed marker frame (P, 3) to the joints in order; their outputs.
 
@@ -214,6 +215,9 @@ def route_frame(
     :meth:`~jointfit_ros.runner.JointRunner.take_sample`. ``replayed``: per
     runner, the frame is still in its window from before (a looped replay,
     :class:`~jointfit_ros.repeated_frames.RepeatedFrames`): its output, not added again.
+    ``on_error``: a joint that raises is reported to it and the frame goes on to
+    the joints after it (the node: its callback guard); None: the exception
+    propagates (offline, where a bug must stop the fit).
     """
     out = []
     chain: dict[str, FloatArray] = {}
@@ -222,6 +226,11 @@ def route_frame(
         runner.estimator.replayed = replayed is not None and bool(replayed[k])
         try:
             result = runner.markers_frame(t, frame, chain, defer_sample=defer_samples)
+        except Exception as exc:
+            if on_error is None:
+                raise
+            on_error(runner, exc)  # this joint loses the frame; the joints after it do not
+            continue
         finally:
             runner.estimator.replayed = False
         if result is not None:
@@ -307,6 +316,9 @@ class MessageRouter:
         self.gaps = StampGaps()
         self._gap_stamp_ns: int | None = None  # the stamp a deferred markers() left for after_outputs()
         self.defer_bookkeeping = False
+        #: When set (the node: its callback guard), a joint that raises on a frame is reported here and the
+        #: frame goes on to the other joints; None: the exception propagates.
+        self.on_joint_error: Callable[[JointRunner, Exception], None] | None = None
         self._last_frame: FloatArray | None = None
         self.recorded: list[tuple[int, FloatArray]] | None = None
         self.timeline = Timeline(round(cfg.max_stamp_jump * 1e9), clock=clock, counters=self.counters)
@@ -641,7 +653,7 @@ class MessageRouter:
         self.counters["repeated_frames"] = self.repeats.count
         return route_frame(
             self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping,
-            replayed=None if fresh.all() else ~fresh,
+            replayed=None if fresh.all() else ~fresh, on_error=self.on_joint_error,
         )
 
     def after_outputs(self) -> None:
@@ -678,7 +690,13 @@ class MessageRouter:
         self.frame_id = self.frame_id or msg.frame_id
         out = []
         for runner, source in self.pose_topics.get(topic, []):
-            result = runner.pose(source, t, R, msg.position)
+            try:
+                result = runner.pose(source, t, R, msg.position)
+            except Exception as exc:
+                if self.on_joint_error is None:
+                    raise
+                self.on_joint_error(runner, exc)  # this joint loses the pose; the others do not
+                continue
             if result is not None:
                 out.append(Routed(runner, msg.stamp_ns, msg.frame_id, result))
         return out
