@@ -51,6 +51,7 @@ __all__ = [
     "joint_features",
     "posterior_scale2",
     "prior_scale2",
+    "t_widened",
     "white_noise_std",
 ]
 
@@ -251,7 +252,7 @@ def prior_scale2(n_markers: int, feature_ms: float) -> float:
     return float(rho2 * (3 * n_markers - 6) / (5.0 * n_markers * feature_ms))
 
 
-def _t_widened(scale2: float, nu: float) -> float:
+def t_widened(scale2: float, nu: float) -> float:
     """``scale2 nu / (nu - 2)`` with ``nu`` at least :data:`NU_MIN` (eq. A5; ``nu`` infinite: unchanged)."""
     if not np.isfinite(nu):
         return scale2
@@ -540,7 +541,7 @@ def artefact_covariance(
         big = int(np.argmax(np.asarray(weights, dtype=np.float64)))
         feature_ms = float(np.mean(np.sum(features**2, axis=1)))
         post2, nu_post = posterior_scale2(scale2, nu, prior_scale2(templates[big].shape[0], feature_ms))
-        scale2 = max(_t_widened(scale2, nu), _t_widened(post2, nu_post))
+        scale2 = max(t_widened(scale2, nu), t_widened(post2, nu_post))
     artefact = scale2 * cov_unit
     zr = z_rem.reshape(n, k)
     tau, window = _integrated_time(zr)

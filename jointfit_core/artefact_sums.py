@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .artefact import NU_MIN, posterior_scale2, prior_scale2
+from .artefact import NU_MIN, posterior_scale2, prior_scale2, t_widened
 from .pose import skew
 from .segments import gauge_free_pinv, normal_matrix, svd3
 
@@ -519,7 +519,6 @@ def artefact_from_sums(
             fs, n, S, SQ, directions, dparams[:6, turns], (float(var[0]), float(var[6])), rotation_ss, rotation_smooth
         )
         # read from nu effective directions: the error over the covariance is F(k, nu)-like (artefact.py, eq. A5)
-        nu = max(nu, NU_MIN)
-        scale2 = max(scale2, rot2 * nu / (nu - 2.0))
+        scale2 = max(scale2, t_widened(rot2, nu))
     cov = scale2 * ((dparams * vjk) @ dparams.T)
     return SumsArtefact(0.5 * (cov + cov.T), math.sqrt(scale2 * float(w.max())))

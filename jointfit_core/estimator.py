@@ -403,11 +403,12 @@ class OnlineJoint(JointSegments):
             self._drop("markers_off_calibration")
             self.frame_poses = None
             return None
-        if ps.parent is not None and ps.child is not None and not self._frozen and not self.replayed:
+        both = ps.parent is not None and ps.child is not None
+        if both and not self._frozen and not self.replayed:
             self._stats.add_frame(R, d, ss, ps, stamp, frame_no, Y)
             self._version += 1
         else:
-            if self.replayed and ps.parent is not None and ps.child is not None and not self._frozen:
+            if both and not self._frozen:  # left out because it was received before
                 self.replayed_frames += 1
             self._stats.chained = False
         if ps.parent is None or self._solution is None:
