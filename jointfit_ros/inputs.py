@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -194,6 +195,26 @@ def split_block(messages: Sequence[Message]) -> tuple[list[bytes], list[PoseMess
     )
 
 
+def _isolated(
+    runner: JointRunner,
+    on_error: Callable[[JointRunner, Exception], None] | None,
+    step: Callable[..., JointOutput | None],
+    *args: Any,
+    **kwargs: Any,
+) -> JointOutput | None:
+    """``step(*args, **kwargs)``, one joint's step; when it raises and ``on_error`` is set, reported there and None.
+
+    The joints after it then still get the frame (the node); without ``on_error`` the exception propagates.
+    """
+    try:
+        return step(*args, **kwargs)
+    except Exception as exc:
+        if on_error is None:
+            raise
+        on_error(runner, exc)
+        return None
+
+
 def route_frame(
     runners: Sequence[JointRunner],
     stamp_ns: int,
@@ -225,12 +246,7 @@ def route_frame(
     for k, runner in enumerate(runners):
         runner.estimator.replayed = replayed is not None and bool(replayed[k])
         try:
-            result = runner.markers_frame(t, frame, chain, defer_sample=defer_samples)
-        except Exception as exc:
-            if on_error is None:
-                raise
-            on_error(runner, exc)  # this joint loses the frame; the joints after it do not
-            continue
+            result = _isolated(runner, on_error, runner.markers_frame, t, frame, chain, defer_sample=defer_samples)
         finally:
             runner.estimator.replayed = False
         if result is not None:
@@ -589,6 +605,7 @@ class MessageRouter:
                 for runner in unpaired:
                     runner.markers_block(stamps, frames)
         paired = [r for r in self.marker_runners if r.matcher is not None]
+        paired_cols = [column[id(r)] for r in paired]
         out: list[Routed] = []
         if not paired and not poses:
             for problem in problems:
@@ -613,14 +630,8 @@ class MessageRouter:
             if row is None:
                 continue
             self.frame_id = frame_ids[row]
-            for runner in paired:
-                runner.estimator.replayed = bool(replayed[row, column[id(runner)]])
-                try:
-                    result = runner.markers_frame(int(stamps[row]), frames[row])
-                finally:
-                    runner.estimator.replayed = False
-                if result is not None:
-                    out.append(Routed(runner, int(real_stamps[row]), frame_ids[row], result))
+            out.extend(route_frame(paired, int(real_stamps[row]), frame_ids[row], frames[row], time_ns=int(stamps[row]),
+                                   replayed=replayed[row, paired_cols]))
         return out
 
     def markers(self, raw: bytes) -> list[Routed]:
@@ -690,13 +701,7 @@ class MessageRouter:
         self.frame_id = self.frame_id or msg.frame_id
         out = []
         for runner, source in self.pose_topics.get(topic, []):
-            try:
-                result = runner.pose(source, t, R, msg.position)
-            except Exception as exc:
-                if self.on_joint_error is None:
-                    raise
-                self.on_joint_error(runner, exc)  # this joint loses the pose; the others do not
-                continue
+            result = _isolated(runner, self.on_joint_error, runner.pose, source, t, R, msg.position)
             if result is not None:
                 out.append(Routed(runner, msg.stamp_ns, msg.frame_id, result))
         return out
