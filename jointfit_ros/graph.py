@@ -64,7 +64,7 @@ def graph_problems(
         if same > 1:
             problems.append(
                 f"{topic} has {same} publishers of {wanted}: if more than one sends frames, they interleave into one "
-                "stream that the joints cannot tell apart (a driver started twice, or a replay beside the live driver); "
-                "stop all but one"
+                "stream that the joints cannot tell apart (a driver started twice, or a replay beside the live driver), "
+                "and the node holds such frames back; stop all but one"
             )
     return problems

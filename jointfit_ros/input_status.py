@@ -26,9 +26,9 @@ MISSED_WARN_MIN = 10
 MISSED_WARN_SHARE = 0.05
 MISSED_WINDOW_S = 5.0
 #: Counters of messages dropped whole (each is a reason the input status gives).
-_DROPPED = ("malformed", "wrong_frame_id", "invalid_stamps", "stamps_ahead", "oversized_clouds")
+_DROPPED = ("malformed", "wrong_frame_id", "invalid_stamps", "stamps_ahead", "oversized_clouds", "second_publisher")
 #: Counters that make the input status WARN by themselves.
-_PROBLEMS = ("malformed", "label_problems", "wrong_frame_id", "oversized_clouds")
+_PROBLEMS = ("malformed", "label_problems", "wrong_frame_id", "oversized_clouds", "second_publisher")
 
 
 class InputStatus:
@@ -68,6 +68,7 @@ class InputStatus:
             "messages with label problems": c["label_problems"],
             "unassigned markers (unlabelled clouds)": c["unassigned"],
             "oversized clouds dropped": c["oversized_clouds"],
+            "frames held back: a second publisher": c["second_publisher"],
         })
         level = WARN if any(c[k] for k in _PROBLEMS) else OK
         message = "receiving" if c["messages"] else f"waiting for {cfg.marker_topic}"
@@ -75,6 +76,11 @@ class InputStatus:
             message += f"; {c['malformed']} malformed messages dropped"
         if c["wrong_frame_id"]:
             message += f"; {c['wrong_frame_id']} messages from a frame_id other than {cfg.input_frame_id!r} dropped"
+        if c["second_publisher"]:
+            message += (
+                f"; {c['second_publisher']} frames held back while a second publisher was on the topic (two streams "
+                "interleaving, or a copy of each frame): not given to the joints"
+            )
         values["messages with an invalid stamp"] = c["invalid_stamps"]
         values["messages stamped too far ahead (max_stamp_jump)"] = c["stamps_ahead"]
         values["timeline restarts"] = c["timeline_restarts"]

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from jointfit_core.estimator import JointOutput
 
+from .interleaved_publishers import InterleaveGuard
 from .params import NodeConfig
 from .raw import (
     ConversionError,
@@ -319,7 +320,12 @@ class MessageRouter:
                     self.pose_topics.setdefault(topic, []).append((r, source))
         self.counters = {
             "messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0,
-            "oversized_clouds": 0, "repeated_frames": 0,
+            "oversized_clouds": 0, "repeated_frames": 0, "second_publisher": 0,
+        }
+        #: Per input topic, its matched publishers and whether frames of two of them interleave (the node sets
+        #: the counts from its subscriptions' matched events: :meth:`set_publishers`).
+        self.interleave: dict[str, InterleaveGuard] = {
+            t: InterleaveGuard() for t in ([cfg.marker_topic] if self.marker_runners else []) + list(self.pose_topics)
         }
         #: The marker frames received (stamp and markers), to tell a looped replay's frames from new ones.
         self.repeats = RepeatedFrames(len(self.marker_runners))
@@ -354,6 +360,29 @@ class MessageRouter:
             windows = [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r in self.marker_runners]
             self._horizons = (period_ns, window_horizon(windows, period_ns))
         return self._horizons[1]
+
+    def set_publishers(self, topic: str, n: int) -> None:
+        """``topic`` has ``n`` matched publishers now (its subscription's matched event)."""
+        guard = self.interleave.get(topic)
+        if guard is not None:
+            guard.set_publishers(n)
+
+    def _second_publisher(self, topic: str, frame: FloatArray, runners: Sequence[JointRunner]) -> bool:
+        """Whether a frame of ``topic`` is held back because a second publisher's frames interleave with it."""
+        guard = self.interleave.get(topic)
+        if guard is None or guard.publishers <= 1:
+            return False
+        why = guard.admit(frame)
+        if not why:
+            return False
+        self._problem(
+            f"second_publisher:{topic}",
+            f"{topic} has {guard.publishers} publishers: frames held back until only one sends "
+            + ("(this one a copy of a recent frame)" if why == "copy" else "(their frames interleave)"),
+            "second_publisher",
+        )
+        _note_dropped(runners, 1)
+        return True
 
     def _problem(self, key: str, text: str, counter: str = "malformed") -> None:
         if counter:  # "": counted where it was found (the timeline)
@@ -649,6 +678,8 @@ class MessageRouter:
             _note_dropped(self.marker_runners, 1)
             return []
         stamp_ns, frame_id, frame = got
+        if self._second_publisher(self.cfg.marker_topic, frame, self.marker_runners):
+            return []
         if defer_bookkeeping:
             self._gap_stamp_ns = stamp_ns
         else:
@@ -694,6 +725,8 @@ class MessageRouter:
             return []
         if not self._frame_id_ok(msg.frame_id, topic):
             _note_dropped([r for r, _ in self.pose_topics.get(topic, [])], 1)
+            return []
+        if self._second_publisher(topic, msg.position.reshape(1, 3), [r for r, _ in self.pose_topics.get(topic, [])]):
             return []
         t = self._time(msg.stamp_ns, topic, [r for r, _ in self.pose_topics.get(topic, [])])
         if t is None:

@@ -33,6 +33,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -155,11 +156,13 @@ class JointfitNode(Node):
         if self.router.marker_runners:
             msg_type = PoseArray if self.cfg.marker_type == "pose_array" else PointCloud2
             self.create_subscription(
-                msg_type, self.cfg.marker_topic, self.guard.wrap("markers", self._on_markers), qos, raw=True
+                msg_type, self.cfg.marker_topic, self.guard.wrap("markers", self._on_markers), qos, raw=True,
+                event_callbacks=self._publisher_count(self.cfg.marker_topic),
             )
         for topic in self.router.pose_topics:
             self.create_subscription(
-                PoseStamped, topic, self.guard.wrap(f"pose {topic}", self._pose_callback(topic)), qos, raw=True
+                PoseStamped, topic, self.guard.wrap(f"pose {topic}", self._pose_callback(topic)), qos, raw=True,
+                event_callbacks=self._publisher_count(topic),
             )
 
         # Timers and services.
@@ -272,6 +275,14 @@ class JointfitNode(Node):
         self._segments_pub.publish(self._segments.pose_array(stamp_ns, frame, R, t))
         if self._tf is not None and self._tf.available:
             self._tf.send(self._segments.tree(R, t, frame), stamp_ns)
+
+    def _publisher_count(self, topic: str) -> SubscriptionEventCallbacks:
+        """The input's matched event: the router holds frames back while two publishers' frames interleave."""
+        return SubscriptionEventCallbacks(
+            matched=self.guard.wrap(
+                f"publishers {topic}", lambda event: self.router.set_publishers(topic, int(event.current_count))
+            )
+        )
 
     def _pose_callback(self, topic: str) -> Callable[[bytes], None]:
         def callback(raw: bytes) -> None:
