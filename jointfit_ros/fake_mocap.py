@@ -53,6 +53,8 @@ from .fake_skeleton import SkeletonSource
 __all__ = [
     "RIGS",
     "FORMATS",
+    "ORDERED_START_S",
+    "marker_message",
     "Truth",
     "marker_names",
     "make_rigs",
@@ -81,6 +83,11 @@ RIG_OFFSETS_MM: dict[str, tuple[float, float, float]] = {
 }
 #: Output formats of ``--format``.
 FORMATS = ("pose_array", "pointcloud2", "pointcloud2_unlabelled")
+
+#: ``pointcloud2_unlabelled``: for this many seconds from the start, every cloud holds every marker in
+#: ``marker_names`` order (no occlusion, not shuffled): a node with ``unlabelled: true`` learns the
+#: identities from its first complete cloud, and a best-effort subscriber may miss the first few.
+ORDERED_START_S = 2.0
 
 
 def marker_names(extra: int = 0) -> list[str]:
@@ -150,6 +157,45 @@ def extra_marker_positions(n: int, seed: int | None = 0) -> FloatArray:
     low, high = np.array([1500.0, 2000.0, 0.0]), np.array([5000.0, 4000.0, 2000.0])
     out: FloatArray = rng.uniform(low, high, (n, 3))
     return out
+
+
+def marker_message(
+    fmt: str, zeros: bool, stamp_ns: int, frame_id: str, frame: FloatArray, rng: np.random.Generator, ordered: bool
+) -> bytes:
+    """One frame's marker message (CDR bytes) in format ``fmt`` (:data:`FORMATS`).
+
+    Parameters
+    ----------
+    fmt : str
+        ``pose_array`` (occluded markers NaN, or zeros), ``pointcloud2`` (a ``label`` field, occluded
+        markers left out, or zeros) or ``pointcloud2_unlabelled`` (x, y, z only, occluded markers
+        left out, the points shuffled unless ``ordered``).
+    zeros : bool
+        Occluded markers as (0, 0, 0) (``pose_array``, ``pointcloud2``).
+    stamp_ns : int
+    frame_id : str
+    frame : ndarray, shape (P, 3)
+        Markers in ``marker_names`` order, NaN rows occluded (changed in place where zeroed).
+    rng : numpy.random.Generator
+        The shuffle's source.
+    ordered : bool
+        ``pointcloud2_unlabelled``: the points in ``marker_names`` order, not shuffled (the
+        stream's start, from which a node learns the identities).
+    """
+    missing = np.isnan(frame[:, 0])
+    if fmt == "pose_array":
+        if zeros:
+            frame[missing] = 0.0
+        return pose_array_bytes(stamp_ns, frame_id, frame)
+    if fmt == "pointcloud2":
+        labels = np.arange(frame.shape[0])
+        if zeros:
+            frame[missing] = 0.0
+        else:
+            frame, labels = frame[~missing], labels[~missing]
+        return pointcloud2_bytes(stamp_ns, frame_id, frame, labels=labels)
+    visible = frame[~missing]
+    return pointcloud2_bytes(stamp_ns, frame_id, visible if ordered else visible[rng.permutation(visible.shape[0])])
 
 
 def frame_at(
@@ -328,7 +374,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         choices=FORMATS,
         default="pose_array",
         help="pose_array (default; NaN = occluded), pointcloud2 (uint32 'label' field = marker index, occluded "
-        "markers left out), pointcloud2_unlabelled (x, y, z only, shuffled, occluded markers left out)",
+        "markers left out), pointcloud2_unlabelled (x, y, z only, shuffled, occluded markers left out; the first "
+        f"{ORDERED_START_S:g} s complete and in marker order, from which a node learns the identities)",
     )
     p.add_argument(
         "--zeros",
@@ -432,26 +479,13 @@ class FakeMocapNode(Node):
         now_ns = int(self.get_clock().now().nanoseconds)
         t = (now_ns - self.start_ns) * 1e-9
         o = self.opts
+        ordered = o.format == "pointcloud2_unlabelled" and t < ORDERED_START_S
+        occlusion = 0.0 if ordered else o.occlusion
         if self.skeleton is not None:
-            frame = self.skeleton.frame(t, self.rng, o.noise, o.occlusion) * self.scale
+            frame = self.skeleton.frame(t, self.rng, o.noise, occlusion) * self.scale
         else:
-            frame = frame_at(self.rigs, t, self.rng, o.noise, o.occlusion, extra=self.extra) * self.scale
-        missing = np.isnan(frame[:, 0])
-        if o.format == "pose_array":
-            if o.zeros:
-                frame[missing] = 0.0
-            raw = pose_array_bytes(now_ns, o.frame_id, frame)
-        elif o.format == "pointcloud2":
-            labels = np.arange(frame.shape[0])
-            if o.zeros:
-                frame[missing] = 0.0
-            else:
-                frame, labels = frame[~missing], labels[~missing]
-            raw = pointcloud2_bytes(now_ns, o.frame_id, frame, labels=labels)
-        else:
-            visible = frame[~missing]
-            raw = pointcloud2_bytes(now_ns, o.frame_id, visible[self.rng.permutation(visible.shape[0])])
-        self.pub_markers.publish(raw)
+            frame = frame_at(self.rigs, t, self.rng, o.noise, occlusion, extra=self.extra) * self.scale
+        self.pub_markers.publish(marker_message(o.format, o.zeros, now_ns, o.frame_id, frame, self.rng, ordered))
         self._publish_truth(now_ns, t)
         self.frames += 1
         if o.duration > 0.0 and t >= o.duration and not self.done.done():

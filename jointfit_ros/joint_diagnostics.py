@@ -208,6 +208,15 @@ def _estimate_values(est: OnlineJoint, sol: PoseSumsCentre | PoseSumsAxis, u: st
     return values
 
 
+#: Unlabelled clouds: the marker identities come from the first complete cloud; one in another order
+#: makes every segment a mix of markers that do not move together, which reads as noise or swaps.
+_UNLABELLED_HINT = (
+    "; unlabelled clouds: the marker identities were learnt from the first complete cloud, which must list "
+    "the markers in marker_names order (if it did not, no segment is rigid: call ~/reset while the source "
+    "sends an ordered cloud to learn them again)"
+)
+
+
 def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str) -> str:
     """The status's warning, the first that applies in order of precedence (empty: none)."""
     est, cfg = runner.estimator, runner.cfg
@@ -215,14 +224,14 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
         return est.calibration_problem
     gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
     if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
-        return gated
+        return gated + _UNLABELLED_HINT * runner.node.unlabelled
     if not sol.identifiable:
         outputs = (
             "per-frame outputs published with a widened covariance (publish_unidentified)"
             if cfg.publish_unidentified
             else "no per-frame output until it is"
         )
-        return f"not identifiable ({outputs}): {sol.reason}"
+        return f"not identifiable ({outputs}): {sol.reason}" + _UNLABELLED_HINT * runner.node.unlabelled
     if units:
         return units
     if runner.sign.problem:
