@@ -69,6 +69,7 @@ class InputStatus:
             "unassigned markers (unlabelled clouds)": c["unassigned"],
             "oversized clouds dropped": c["oversized_clouds"],
             "frames held back: a second publisher": c["second_publisher"],
+            "markers at exactly (0, 0, 0) (zero_is_missing false)": c["zero_markers"],
         })
         level = WARN if any(c[k] for k in _PROBLEMS) else OK
         message = "receiving" if c["messages"] else f"waiting for {cfg.marker_topic}"
@@ -76,6 +77,12 @@ class InputStatus:
             message += f"; {c['malformed']} malformed messages dropped"
         if c["wrong_frame_id"]:
             message += f"; {c['wrong_frame_id']} messages from a frame_id other than {cfg.input_frame_id!r} dropped"
+        if c["zero_markers"]:
+            level = max(level, WARN)
+            message += (
+                f"; {c['zero_markers']} markers at exactly (0, 0, 0) taken as positions (zero_is_missing is false): "
+                "if the driver sends occluded markers as zeros, set zero_is_missing: true"
+            )
         if c["second_publisher"]:
             message += (
                 f"; {c['second_publisher']} frames held back while a second publisher was on the topic (two streams "

@@ -320,7 +320,7 @@ class MessageRouter:
                     self.pose_topics.setdefault(topic, []).append((r, source))
         self.counters = {
             "messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0,
-            "oversized_clouds": 0, "repeated_frames": 0, "second_publisher": 0,
+            "oversized_clouds": 0, "repeated_frames": 0, "second_publisher": 0, "zero_markers": 0,
         }
         #: Per input topic, its matched publishers and whether frames of two of them interleave (the node sets
         #: the counts from its subscriptions' matched events: :meth:`set_publishers`).
@@ -493,6 +493,10 @@ class MessageRouter:
             return None
         if not self._frame_id_ok(msg.frame_id, cfg.marker_topic):
             return None
+        if not cfg.zero_is_missing:
+            zeros = int(np.count_nonzero((frame == 0.0).all(axis=1)))
+            if zeros:  # taken as positions: a driver's occluded markers would be read as markers at the origin
+                self.counters["zero_markers"] += zeros
         if cfg.unlabelled:
             # The prediction for the next cloud: the latest position of every marker seen.
             if self._last_frame is None:

@@ -1,5 +1,5 @@
-"""Unlabelled clouds learn the marker identities from the first complete cloud: the fake mocap starts ordered,
-and a scrambled start is named in the joints' statuses.
+"""Input mistakes the node names: an unlabelled stream must start ordered (the fake mocap does), a scrambled start
+is named in the joints' statuses, and zeros taken as positions are named in the input status.
 
 Before, ``jointfit_fake_mocap --format pointcloud2_unlabelled`` shuffled every cloud, the first too, so it
 could never drive a node (every identity scrambled), and the joints said only "no relative rotation
@@ -55,7 +55,7 @@ def test_the_fake_mocaps_unlabelled_start_is_complete_and_ordered() -> None:
 
 
 def test_an_unlabelled_stream_that_starts_ordered_drives_the_joints_even_with_its_first_clouds_lost() -> None:
-    router, z = _run(skip=20, ordered_start=True)
+    _, z = _run(skip=20, ordered_start=True)
     assert len(z) > 1000
     assert np.mean(np.asarray(z) > 5.0) < 0.01
 
@@ -66,3 +66,29 @@ def test_a_scrambled_first_cloud_is_named_in_the_joints_statuses() -> None:
     for r in router.runners:
         message = r.status().message
         assert "learnt from the first complete cloud" in message and "~/reset" in message, message
+
+
+def test_markers_at_the_origin_with_zero_is_missing_false_are_named_in_the_input_status() -> None:
+    """A driver that sends occluded markers as (0, 0, 0) into ``zero_is_missing: false`` (hunt D5): before, the
+    joints blamed swapped labels, ghosts or jumps, and nothing said that markers sat at the origin."""
+    from jointfit_ros.input_status import InputStatus
+    from jointfit_ros.joint_diagnostics import WARN
+    from jointfit_ros.raw import pose_array_bytes
+
+    statuses = []
+    for zero_is_missing in (True, False):
+        cfg = node_config(fake_rig_values(zero_is_missing=zero_is_missing))
+        router = MessageRouter(cfg, [JointRunner(j, cfg) for j in cfg.joints])
+        rigs = make_rigs(4)
+        rng = np.random.default_rng(4)
+        for k in range(300):
+            frame = frame_at(rigs, k / RATE, rng, 0.5, 0.1) / 1000.0
+            frame[np.isnan(frame[:, 0])] = 0.0
+            router.markers(pose_array_bytes(10**18 + k * 10**7, "world", frame))
+        values: dict[str, object] = {}
+        statuses.append((InputStatus().status(0.0, router.counters, router.gaps, router.cfg, values), values))
+    (level, message), values = statuses[0]
+    assert "(0, 0, 0)" not in message and values["markers at exactly (0, 0, 0) (zero_is_missing false)"] == 0
+    (level, message), values = statuses[1]
+    assert level == WARN and "taken as positions (zero_is_missing is false)" in message, message
+    assert 300 <= int(values["markers at exactly (0, 0, 0) (zero_is_missing false)"]) <= 700  # 10 % of 16 x 300
