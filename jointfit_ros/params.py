@@ -133,7 +133,8 @@ NODE_PARAMS: tuple[ParamSpec, ...] = (
         "zero_is_missing",
         "bool",
         True,
-        "Treat a point at exactly (0, 0, 0) as an occluded marker (mocap4ros2 Vicon convention).",
+        "Treat a point at exactly (0, 0, 0) as an occluded marker (mocap4ros2 Vicon convention). With `false`, "
+        "such points are taken as positions, counted and named in the input status (WARN).",
         runtime=True,
     ),
     ParamSpec(
