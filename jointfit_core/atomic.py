@@ -47,7 +47,9 @@ def write_atomic(path: str | os.PathLike[str], content: bytes | str, *, keep_bac
     Parameters
     ----------
     path : str or os.PathLike
-        The target; its directory is created when missing.
+        The target; its directory is created when missing. A symbolic link is written
+        through: the file it points to is replaced (and backed up beside it), the link
+        stays (a calibration kept in a shared place and linked into a workspace).
     content : bytes or str
         The new content (str is written as UTF-8).
     keep_backup : bool
@@ -56,7 +58,7 @@ def write_atomic(path: str | os.PathLike[str], content: bytes | str, *, keep_bac
     Returns
     -------
     Path
-        The written path.
+        The written path (the link's target for a symbolic link).
 
     Raises
     ------
@@ -64,7 +66,7 @@ def write_atomic(path: str | os.PathLike[str], content: bytes | str, *, keep_bac
         The directory or the file cannot be written; the target is then
         unchanged and no temporary file is left behind.
     """
-    target = Path(path)
+    target = Path(os.path.realpath(path)) if os.path.islink(path) else Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     data = content.encode("utf-8") if isinstance(content, str) else bytes(content)
     tmp = _temporary_sibling(target, ".tmp")

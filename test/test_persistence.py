@@ -176,3 +176,27 @@ def test_node_killed_during_saves_reloads(tmp_path: Path) -> None:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_a_symlinked_calibration_is_written_through_and_the_link_kept(tmp_path: Path) -> None:
+    """A calibration kept in a shared place and linked into the workspace: before, a save replaced the link
+    with a file, so the shared calibration was never updated and the link was gone (hunt, offline)."""
+    from jointfit_core.atomic import write_atomic
+
+    shared = tmp_path / "shared" / "hip.yaml"
+    shared.parent.mkdir()
+    shared.write_text("old: 1\n")
+    link = tmp_path / "work" / "hip.yaml"
+    link.parent.mkdir()
+    link.symlink_to(shared)
+    written = write_atomic(link, "new: 2\n", keep_backup=True)
+    assert link.is_symlink() and os.readlink(link) == str(shared)
+    assert written == shared.resolve()
+    assert shared.read_text() == "new: 2\n" and link.read_text() == "new: 2\n"
+    assert (shared.parent / "hip.yaml.bak").read_text() == "old: 1\n"
+    assert not (link.parent / "hip.yaml.bak").exists()
+    # a link to a file that does not exist yet: created where it points
+    dangling = tmp_path / "work" / "knee.yaml"
+    dangling.symlink_to(tmp_path / "shared" / "knee.yaml")
+    write_atomic(dangling, "k: 3\n")
+    assert dangling.is_symlink() and (tmp_path / "shared" / "knee.yaml").read_text() == "k: 3\n"
