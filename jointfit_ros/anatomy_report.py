@@ -9,6 +9,7 @@ motion (:mod:`jointfit_core.rom`). Both read the
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -35,26 +36,56 @@ def _r(values: Any, digits: int = 2) -> Any:
     return np.round(np.asarray(values, dtype=np.float64), digits).tolist()
 
 
+#: A landmark moves with its segment when its rms scatter in the segment's frame is at most this many times
+#: the rms pose-fit residual of the segment's own markers, or :data:`LANDMARK_SPREAD_MIN_MM` (skin over a
+#: bony landmark slides 5-15 mm, Leardini et al. 2005); more, and it is on another segment or mislabelled:
+#: measured, the shank marker RATT taken as an epicondyle scattered 46 mm, a thigh marker as an ASIS 94 mm.
+LANDMARK_SPREAD_FACTOR = 4.0
+#: See :data:`LANDMARK_SPREAD_FACTOR` (mm).
+LANDMARK_SPREAD_MIN_MM = 25.0
+#: A functional hip centre farther than this (mm) from both regressions' (plus 3 sd along that direction) is
+#: not a hip in that pelvis frame: functional and regression centres differ by ~10-30 mm (Harrington et al.
+#: 2007), while swapped ASIS (or PSIS) labels mirror the frame (measured: 152 and 161 mm).
+REGRESSION_PLAUSIBLE_MM = 60.0
+
+
 def _spread(geo: SegmentGeometry, markers: dict[str, str], scale: float) -> dict[str, float]:
     return {m: round(geo.landmarks_parent[m][1] * scale, 2) for m in markers.values()}
 
 
-def _landmarks(cfg: JointConfig, group: str, geo: SegmentGeometry) -> tuple[dict[str, str] | None, dict[str, Any] | None]:
-    """A landmark group's markers by role, or None (not configured); and the error when some were never seen."""
+def _landmarks(
+    cfg: JointConfig, group: str, geo: SegmentGeometry, mm_per_unit: float
+) -> tuple[dict[str, str] | None, dict[str, Any] | None]:
+    """A landmark group's markers by role, or None (not configured); and the error when some were never seen
+    or do not move with the parent segment (:data:`LANDMARK_SPREAD_FACTOR`)."""
     roles = cfg.landmarks(group)
-    missing = [] if roles is None else [m for m in roles.values() if m not in geo.landmarks_parent]
+    if roles is None:
+        return None, None
+    missing = [m for m in roles.values() if m not in geo.landmarks_parent]
     if missing:
         return roles, {"error": f"landmarks {missing} are never visible in a frame where the parent is posed"}
+    residual = geo.residual_parent[np.isfinite(geo.residual_parent)]
+    own = float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0
+    limit = max(LANDMARK_SPREAD_FACTOR * own, LANDMARK_SPREAD_MIN_MM / mm_per_unit)
+    loose = {m: geo.landmarks_parent[m][1] for m in roles.values() if geo.landmarks_parent[m][1] > limit}
+    if loose:
+        moved = ", ".join(f"{m} {v * mm_per_unit:.0f} mm" for m, v in loose.items())
+        return roles, {
+            "error": f"landmarks that do not move with the parent segment (rms scatter in its frame: {moved}; its own "
+            f"markers' pose-fit residual {own * mm_per_unit:.1f} mm rms): on another segment or mislabelled, so "
+            "no anatomical result is made",
+            "landmark_spread": _spread(geo, roles, mm_per_unit),
+        }
     return roles, None
 
 
 def _pelvis(cfg: JointConfig, sol: PoseSumsCentre, geo: SegmentGeometry, unit: str) -> dict[str, Any] | None:
-    roles, error = _landmarks(cfg, "pelvis", geo)
-    if roles is None or error is not None:
-        return error
     scale = MM_PER_UNIT.get(unit)
     shown = "mm" if scale is not None else unit
     s = scale or 1.0
+    roles, error = _landmarks(cfg, "pelvis", geo, s)
+    if roles is None or error is not None:
+        return error
     thigh = np.nanmedian(geo.child_in_parent.reshape(-1, 3), axis=0)
     ra, la, rp, lp = (geo.landmarks_parent[roles[r]][0] for r in ("rasis", "lasis", "rpsis", "lpsis"))
     hip = hip_in_pelvis(sol.centre_parent, sol.cov_parent, ra, la, rp, lp, thigh_point=thigh, mm_per_unit=s)
@@ -74,15 +105,26 @@ def _pelvis(cfg: JointConfig, sol: PoseSumsCentre, geo: SegmentGeometry, unit: s
         out["note"] = f"unit {unit!r} unknown: the regressions' offsets (mm) are taken as {unit}"
     for name, c in hip.regressions.items():
         out["regressions"][name] = {"centre": _r(c * s, 1), "distance": round(hip.distance_to(name) * s, 1)}
+    nearest = min(hip.regressions, key=hip.distance_to, default=None)
+    if nearest is not None:
+        gap = hip.regressions[nearest] - hip.centre
+        dist = float(np.linalg.norm(gap))
+        sd_along = math.sqrt(max(float(gap @ hip.cov @ gap), 0.0)) / dist if dist > 0.0 else 0.0
+        if dist * s > REGRESSION_PLAUSIBLE_MM + 3.0 * sd_along * s:
+            out["warning"] = (
+                f"the centre is {dist * s:.0f} mm from the nearest regression's ({nearest.replace('_', ' ')}; they "
+                f"usually agree within 10-30 mm): check the pelvis landmarks' labels (ASIS or PSIS swapped?) and "
+                "that the joint is the hip of this pelvis"
+            )
     return out
 
 
 def _epicondyles(cfg: JointConfig, sol: PoseSumsAxis, geo: SegmentGeometry, unit: str) -> dict[str, Any] | None:
-    roles, error = _landmarks(cfg, "epicondyles", geo)
-    if roles is None or error is not None:
-        return error
     scale = MM_PER_UNIT.get(unit)
     s = scale or 1.0
+    roles, error = _landmarks(cfg, "epicondyles", geo, s)
+    if roles is None or error is not None:
+        return error
     knee = axis_against_epicondyles(
         sol.point_parent,
         sol.direction_parent,

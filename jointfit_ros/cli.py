@@ -233,6 +233,8 @@ def _anatomy_text(joint: dict[str, Any]) -> str:
     for part in (anatomy, pelvis, epi):
         if "error" in part:
             out += f"; anatomical: {part['error']}"
+        if "warning" in part:
+            out += f"; anatomical WARNING: {part['warning']}"
     return out
 
 

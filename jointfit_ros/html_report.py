@@ -131,8 +131,9 @@ def _anatomy_section(joint: Mapping[str, Any]) -> str:
         ]
         parts.append("<h3>Axis against the epicondyles</h3>" + _table(["", "value"], rows))
     for part in (anatomy, pelvis, epi):
-        if "error" in part:
-            parts.append(f"<p class='warn'>Anatomical results: {_e(part['error'])}</p>")
+        for key in ("error", "warning"):
+            if key in part:
+                parts.append(f"<p class='warn'>Anatomical results: {_e(part[key])}</p>")
     return "".join(parts)
 
 

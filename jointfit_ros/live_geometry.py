@@ -179,6 +179,8 @@ class LiveGeometry:
         for part in (anat, pelvis or {}, knee or {}):
             if "error" in part:
                 out["anatomical"] = part["error"]
+            if "warning" in part:
+                out["anatomical warning"] = part["warning"]
         if pelvis and "error" not in pelvis:
             u = pelvis["unit"]
             out[f"centre in ISB pelvis ({u}, {pelvis['side']} side)"] = pelvis["centre"]

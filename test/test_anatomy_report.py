@@ -155,3 +155,56 @@ def test_fake_mocap_truth_is_in_the_nodes_parent_frame() -> None:
         assert e @ np.linalg.pinv(cov) @ e < 30.0, (name, e)  # chi^2(3) far tail: the same frame, not 7 cm off
         assert np.linalg.norm(centre_start - centre_tpl) < 2.0  # mm: the printed truth (t0) is that frame too
         assert np.linalg.norm(rigs[name].centre_parent - centre_tpl) > 10.0  # the rig's own frame is not
+
+
+def _mislabelled(tmp_path: Path, config: str, old: str, new: str) -> str:
+    text = (CONFIG / config).read_text()
+    assert old in text
+    path = tmp_path / config
+    path.write_text(text.replace(old, new).replace("~/.ros/jointfit/", f"{tmp_path}/"))
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    ("fixture", "config", "old", "new", "part", "expect"),
+    [
+        # a shank marker taken as the lateral epicondyle (before: "49.0 deg from the epicondyle line", no warning)
+        ("right_knee.c3d", "offline_right_knee.yaml", "lateral_epicondyle: RLFE", "lateral_epicondyle: RLEG1",
+         "epicondyles", "do not move with the parent segment"),
+        # a thigh marker taken as the right ASIS (before: an ISB centre 100+ mm off with sd 10-15 mm)
+        ("right_hip.c3d", "offline_right_hip.yaml", "rasis: RASIS", "rasis: RTHI1", "pelvis",
+         "do not move with the parent segment"),
+    ],
+)
+def test_a_landmark_on_another_segment_gives_no_anatomical_result(
+    tmp_path: Path, fixture: str, config: str, old: str, new: str, part: str, expect: str
+) -> None:
+    pytest.importorskip("ezc3d")
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "jointfit_ros.cli", "fit", str(DATA / "biobuddy" / fixture), "--config",
+         _mislabelled(tmp_path, config, old, new), "--out", str(out), "--html"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((out / "summary.json").read_text())["joints"][0]["anatomical"][part]
+    assert expect in result["error"] and "centre" not in result and "angle_to_epicondyle_line_deg" not in result
+    assert max(result["landmark_spread"].values()) > 25.0
+    assert expect in proc.stdout and expect in (out / "report.html").read_text()
+
+
+def test_swapped_asis_labels_are_warned_about(tmp_path: Path) -> None:
+    """RASIS and LASIS swapped mirror the pelvis frame: the centre lands 150+ mm from both regressions."""
+    pytest.importorskip("ezc3d")
+    out = tmp_path / "out"
+    config = _mislabelled(tmp_path, "offline_right_hip.yaml", "rasis: RASIS                                 # pelvis frame, % of the inter-ASIS width, and beside\n        lasis: LASIS", "rasis: LASIS\n        lasis: RASIS")
+    proc = subprocess.run(
+        [sys.executable, "-m", "jointfit_ros.cli", "fit", str(DATA / "biobuddy" / "right_hip.c3d"), "--config", config,
+         "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    pelvis = json.loads((out / "summary.json").read_text())["joints"][0]["anatomical"]["pelvis"]
+    assert min(r["distance"] for r in pelvis["regressions"].values()) > 100.0
+    assert "ASIS or PSIS swapped?" in pelvis["warning"]
+    assert "anatomical WARNING" in proc.stdout
