@@ -103,7 +103,7 @@ def joint_status(runner: JointRunner) -> tuple[Status, bool]:
     values = _input_values(runner)
     sol = est.solution
     if sol is None:
-        msg = est.status() or runner.last_error or "collecting frames"
+        msg = runner.waiting() or runner.last_error or "collecting frames"
         return Status(WARN if est.n_frames_seen else STALE, msg, values), False
     u = runner.node.units
     units = unit_problem(est.length_scale, u)

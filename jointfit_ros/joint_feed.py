@@ -442,6 +442,22 @@ class JointFeed:
             self._last_solve = now
         return not (self.estimator.frozen or not self.estimator.templates_ready or self.estimator.n_window < 3)
 
+    def waiting(self) -> str:
+        """What the estimator waits for, in words (empty when estimating); a chained joint names its chain.
+
+        A chained joint's segments hold the earlier joints' outputs as markers
+        (``parent_chain``, ``child_chain``): while those have no estimate, the
+        segments are never fully visible and the templates wait for them.
+        """
+        text = self.estimator.status()
+        chain = (*self.cfg.parent_chain, *self.cfg.child_chain)
+        if text and chain and not self.estimator.templates_ready:
+            text += (
+                f" (its segments hold the per-frame outputs of {', '.join(chain)} as markers: while "
+                f"{'that joint has' if len(chain) == 1 else 'those joints have'} no output, they are never fully visible)"
+            )
+        return text
+
     def _failed(self, exc: Exception) -> None:
         self.counters["estimate_failures"] += 1
         self.last_error = f"no estimate: {exc}"

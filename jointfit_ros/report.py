@@ -167,7 +167,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
         out["axis_points"] = r.axis_words()
     if sol is None:
         out["status"] = "no estimate"
-        out["message"] = r.last_error or est.status() or "too few frames"
+        out["message"] = (r.last_error or r.waiting() or "too few frames").removeprefix("no estimate: ")
         return out
     warning = gate_warning(r)
     out["status"] = ("outlier gate" if warning else "ok") if sol.identifiable else "not identifiable"
@@ -695,7 +695,7 @@ def _headline(trace: JointTrace, unit: str) -> str:
     sol = trace.final
     head = f"{r.cfg.name} ({r.cfg.type})"
     if sol is None:
-        return f"{head}: no estimate: {r.last_error or r.estimator.status()}"
+        return f"{head}: no estimate: {(r.last_error or r.waiting()).removeprefix('no estimate: ')}"
     verdict = "identifiable" if sol.identifiable else f"NOT identifiable: {sol.reason}"
     share = gated_share(r)
     frames = (

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 from pathlib import Path
 
@@ -119,3 +120,17 @@ def test_ctrl_c_during_the_writes_leaves_nothing(tmp_path: Path, capsys: pytest.
     code, err = _fit(capsys, HIP, "--config", HIP_CONFIG, "--out", out, "--no-report")
     assert code == 130 and "interrupted" in err
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_a_still_recording_says_no_estimate_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Exact copies of one frame: the summary line said "no estimate: no estimate: ..." (offline hunt)."""
+    rng = np.random.default_rng(1)
+    frame = rng.normal(0.0, 100.0, (6, 3))
+    path = tmp_path / "still.trc"
+    write_trc(path, MarkerData(np.repeat(frame[None], 200, axis=0), ("A", "B", "C", "D", "E", "F"), 100.0, "mm"))
+    out = tmp_path / "out"
+    fit_main([str(path), "--config", str(_config(tmp_path)), "--out", str(out)])
+    line = capsys.readouterr().out
+    assert "hip (ball): no estimate: no relative rotation" in line, line
+    joint = json.loads((out / "summary.json").read_text())["joints"][0]
+    assert joint["status"] == "no estimate" and joint["message"].startswith("no relative rotation"), joint["message"]

@@ -92,3 +92,30 @@ def test_markers_at_the_origin_with_zero_is_missing_false_are_named_in_the_input
     (level, message), values = statuses[1]
     assert level == WARN and "taken as positions (zero_is_missing is false)" in message, message
     assert 300 <= int(values["markers at exactly (0, 0, 0) (zero_is_missing false)"]) <= 700  # 10 % of 16 x 300
+
+
+def test_a_chained_joint_whose_chain_has_no_output_says_so() -> None:
+    """Before: "building templates from fully visible frames: parent 0/20" and nothing about the chain (hunt)."""
+    cfg = node_config(fake_rig_values(**{"knee.parent_chain": ["hip"]}))
+    runners = [JointRunner(j, cfg) for j in cfg.joints]
+    router = MessageRouter(cfg, runners)
+    rigs = make_rigs(4)
+    rng = np.random.default_rng(4)
+    for k in range(300):  # a still recording: the hip is never identifiable, so it has no output
+        frame = frame_at(rigs, 0.0, rng, 0.5, 0.0) / 1000.0
+        router.markers(pose_array_bytes_for(k, frame))
+        if k % 50 == 49:
+            for r in runners:
+                r.estimate(force=True)
+    hip, knee = runners
+    assert hip.estimator.solution is None or not hip.estimator.solution.identifiable
+    waiting = knee.waiting()
+    assert waiting.startswith("building templates") and "outputs of hip as markers" in waiting, waiting
+    assert "outputs of hip as markers" in knee.live_status(0.0).message
+    assert hip.waiting() == hip.estimator.status()  # not chained: the estimator's own words
+
+
+def pose_array_bytes_for(k: int, frame: np.ndarray) -> bytes:
+    from jointfit_ros.raw import pose_array_bytes
+
+    return pose_array_bytes(10**18 + k * 10**7, "world", frame)
