@@ -11,7 +11,7 @@ mcap) with ``rosbags``. For each bag, in the same run:
 * **read**: iterate over the messages (:func:`jointfit_ros.bag.iter_bag_messages`): what any
   tool pays to get the bytes out of the file;
 * **read + parse**: also parse every message into a ``(40, 3)`` frame, in blocks of 4096
-  messages as ``jointfit fit`` does (:meth:`jointfit_ros.inputs.MessageRouter.frames_many`);
+  messages as ``jointfit fit`` does (:meth:`jointfit_ros.inputs.MarkerParser.frames_many`);
 * **fit, one process**: ``jointfit fit BAG --config ... --no-report --single-process``
   (:func:`jointfit_ros.cli.fit_main`, called here): read, parse, both joints' estimators over
   the whole recording (windows covering it), final solve, calibrations and summary written, all
@@ -130,9 +130,9 @@ def main(argv: list[str] | None = None) -> int:
                 for msg in iter_bag_messages(bag, ["/markers"]):
                     block.append(msg.raw)
                     if len(block) == 4096:
-                        router.frames_many(block)
+                        router.parser.frames_many(block)
                         block = []
-                router.frames_many(block)
+                router.parser.frames_many(block)
 
             def fit(*extra: str, bag: Path = bag) -> None:
                 args = [str(bag), "--config", str(config), "--out", str(tmp / "out"), "--quiet", *extra]

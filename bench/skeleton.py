@@ -30,7 +30,7 @@ outside the timed spans. Before timing, ``WARM`` frames build the templates and 
 and every joint is solved, so that every frame of the timed part has an output per joint
 (checked: the outputs are counted).
 
-**baseline**: parsing the same messages alone (:meth:`MessageRouter.frame`: CDR to a (56, 3) frame
+**baseline**: parsing the same messages alone (:meth:`MarkerParser.frame <jointfit_ros.marker_parser.MarkerParser.frame>`: CDR to a (56, 3) frame
 with the node's checks), measured in the same run, interleaved with the paths round by round. The
 ratio path / baseline is what the joints add to reading the message.
 
@@ -134,7 +134,7 @@ def _baseline(cfg: NodeConfig, messages: Sequence[bytes]) -> float:
     router = MessageRouter(cfg, [])
     c0 = time.process_time()
     for raw in messages:
-        router.frame(raw)
+        router.parser.frame(raw)
     return time.process_time() - c0
 
 

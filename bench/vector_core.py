@@ -55,7 +55,7 @@ occluded, 100 Hz, PoseArray CDR bytes; joints: the first 1, 2, 6, 12 of ``config
 Each joint count gets a current ``_Path`` of ``bench/skeleton.py``, warmed up on ``WARM`` frames and
 solved, and a :class:`VectorSkeleton` built from it (templates, visible sets, gate and joint-test
 references, windows, lag histories, solutions copied). One continuous stream; each round has two
-chunks of frames. The first: the parse baseline (:meth:`MessageRouter.frame`), then per joint count
+chunks of frames. The first: the parse baseline (:meth:`MarkerParser.frame <jointfit_ros.marker_parser.MarkerParser.frame>`), then per joint count
 the current path (``_Path.run``, its whole per-message path incl. ``~/segments``) and the
 prototype (parse + (a)-(g), timed as one). The second, the frames that follow: the baseline and
 the current paths again, and the prototypes with ``process_time`` around each stage (the stages'
@@ -454,7 +454,7 @@ class VectorSkeleton:
 
     def parse(self, raw: bytes) -> tuple[int, FloatArray]:
         """The message's stamp (ns) and (56, 3) frame, as the node parses it."""
-        got = self.router.frame(raw)
+        got = self.router.parser.frame(raw)
         assert got is not None
         return got[0], got[2]
 
@@ -1052,7 +1052,7 @@ def call_costs(n: int = 20000) -> dict[str, float]:
 def _baseline(router: MessageRouter, messages: Sequence[bytes]) -> float:
     c0 = time.process_time()
     for raw in messages:
-        router.frame(raw)
+        router.parser.frame(raw)
     return time.process_time() - c0
 
 
@@ -1133,7 +1133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         f"Stream: `bench/skeleton.py`'s (full skeleton, 56 markers, 0.5 mm noise, 2 % occluded, 100 Hz), {rounds} "
         f"round(s) of {per_round} frames after {WARM} warm-up frames; median round. Baseline (parse alone, "
-        f"`MessageRouter.frame`, same run): **{base_us:.0f} us per frame**. Prototype: `bench/vector_core.py` "
+        f"`MarkerParser.frame`, same run): **{base_us:.0f} us per frame**. Prototype: `bench/vector_core.py` "
         "`VectorSkeleton`, one unit per body segment (shared mode), timed whole on the first chunk of each "
         "round and stage by stage (process_time around each stage: ~1 us each) on the second; current path and "
         "baseline: median over both chunks of every round.",

@@ -5,7 +5,7 @@ the estimators; the first two take about as long as the third. A
 :class:`BagReaderProcess` (or :func:`parsed_blocks` with ``process=True``) is
 a forked child that opens the bag at once (while the parent checks the
 topics), then reads and parses each block
-(:func:`~jointfit_ros.inputs.parse_markers`) while the parent routes the
+(:func:`~jointfit_ros.marker_parser.parse_markers`) while the parent routes the
 previous one to the estimators, so that on two cores the wall time is nearer
 the larger of the two than their sum.
 
@@ -42,7 +42,8 @@ from numpy.typing import NDArray
 from jointfit_core.errors import InputError
 
 from .bag import iter_selected_messages
-from .inputs import Message, ParsedMarkers, PoseMessage, parse_markers, split_block
+from .inputs import Message, PoseMessage, split_block
+from .marker_parser import ParsedMarkers, parse_markers
 from .params import NodeConfig
 
 __all__ = ["BagReaderProcess", "can_fork", "parsed_blocks", "split_blocks"]
@@ -113,7 +114,7 @@ def parsed_blocks(
     marker_topic : str or None
         The one holding marker messages (None: none does).
     cfg : NodeConfig
-        For :func:`~jointfit_ros.inputs.parse_markers` (not ``unlabelled``).
+        For :func:`~jointfit_ros.marker_parser.parse_markers` (not ``unlabelled``).
     step, max_block : int
         Block boundaries (:func:`split_blocks`).
     process : bool
@@ -154,7 +155,7 @@ class BagReaderProcess:
         Topics to read (:func:`~jointfit_ros.bag.iter_selected_messages`: checked in the child,
         whose errors :meth:`blocks` raises).
     cfg : NodeConfig
-        For :func:`~jointfit_ros.inputs.parse_markers` (not ``unlabelled``).
+        For :func:`~jointfit_ros.marker_parser.parse_markers` (not ``unlabelled``).
     max_block : int
         Most messages in a block.
     """

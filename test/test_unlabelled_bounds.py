@@ -33,7 +33,7 @@ def test_a_flood_of_points_is_dropped_and_tracking_recovers() -> None:
     assert router.counters["oversized_clouds"] == 1 and router.counters["malformed"] == 0
     assert router.last_problem is not None and "100000 points" in router.last_problem[1]
     # the prediction was not touched by the flood: the last cloud is labelled exactly
-    assert router._last_frame is not None
-    assert np.abs(router._last_frame - truth[-1]).max() < 1e-5
+    assert router.parser.last_frame is not None
+    assert np.abs(router.parser.last_frame - truth[-1]).max() < 1e-5
     hip = router.runners[0]
     assert hip.counters["outputs"] > 900
