@@ -34,7 +34,7 @@ artefact is the same in every cycle of the same movement).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -178,6 +178,11 @@ class ArtefactCovariance:
         Integrated autocorrelation time of the remaining residual (frames).
     bandwidth : int
         HAC bandwidth (frames).
+    cluster_motion : ndarray, shape (2, 6)
+        Per frame, the variance of each cluster's motion on its bone, ``(omega, u)`` per
+        component (rad^2, units squared), parent then child: the prior at the estimated scales
+        over the mean feature energy, ``s_seg^2 v_j mean_t |f_t|^2``. What one frame's cluster
+        pose is off from its bone's (the per-frame world outputs add it). Zero for rigid segments.
     """
 
     statistical: FloatArray
@@ -185,6 +190,7 @@ class ArtefactCovariance:
     scale: FloatArray
     tau: float
     bandwidth: int
+    cluster_motion: FloatArray = field(default_factory=lambda: np.zeros((2, 6)))
 
     @property
     def total(self) -> FloatArray:
@@ -556,4 +562,5 @@ def artefact_covariance(
         scale=np.sqrt(scale2 * np.asarray(weights, dtype=np.float64)),
         tau=tau,
         bandwidth=bandwidth,
+        cluster_motion=scale2 * float(np.mean(np.sum(features**2, axis=1))) * var.reshape(2, 6),
     )

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -181,10 +181,18 @@ class SumsArtefact:
     scale : float
         Estimated rms cluster shift on the bone per radian of joint rotation
         (input units per rad; 0 when the residual shows no smooth part).
+    cluster_motion : ndarray, shape (2, 6)
+        Per frame, the variance of each cluster's motion on its bone about its window mean,
+        ``(omega, u)`` per component (rad^2, input units squared), parent then child: the same
+        prior at the same scale, over the window's mean feature energy (``s^2 v_j |f_t - fbar|^2``
+        averaged over the frames). Zero for rigid clusters. What a single frame's pose of the
+        cluster is off from its bone's, which the per-frame world outputs add
+        (:class:`~jointfit_core.joint_world.WorldOutput`).
     """
 
     cov: FloatArray
     scale: float
+    cluster_motion: FloatArray = field(default_factory=lambda: np.zeros((2, 6)))
 
 
 def _centred(fs: FloatArray, n: float, S: FloatArray, sum_t: FloatArray, sum_qt: FloatArray) -> tuple[FloatArray, ...]:
@@ -521,4 +529,5 @@ def artefact_from_sums(
         # read from nu effective directions: the error over the covariance is F(k, nu)-like (artefact.py, eq. A5)
         scale2 = max(scale2, t_widened(rot2, nu))
     cov = scale2 * ((dparams * vjk) @ dparams.T)
-    return SumsArtefact(0.5 * (cov + cov.T), math.sqrt(scale2 * float(w.max())))
+    motion = scale2 * (ff / n) * var.reshape(2, 6)
+    return SumsArtefact(0.5 * (cov + cov.T), math.sqrt(scale2 * float(w.max())), motion)

@@ -414,7 +414,9 @@ class OnlineJoint(JointSegments):
         if ps.parent is None or self._solution is None:
             return None
         child_pose = (R[1], d[1], ps.child) if ps.child is not None else None
-        return self._outputs.output(self._solution, self._sigma, R[0], d[0], ps.parent, child_pose)
+        return self._outputs.output(
+            self._solution, self._sigma, R[0], d[0], ps.parent, child_pose, self._cluster_motion
+        )
 
     def _misfits(self, ss: FloatArray, ps: PairSet) -> bool:
         """A frozen joint's frame: whether its segments' recent pose-fit residual is beyond the calibration's noise.

@@ -141,6 +141,7 @@ class JointEstimate:
         self._serial: SerialInflation | None = None
         self._statistical: PoseSumsCentre | PoseSumsAxis | None = None
         self._artefact_scale = 0.0
+        self._cluster_motion: FloatArray | None = None
         self._white_sigma: tuple[float, float] | None = None
         self._matched: FloatArray | None = None  # hinge: point_child_matched (joint_file.matched_child_point)
 
@@ -301,6 +302,16 @@ class JointEstimate:
         return self._artefact_scale
 
     @property
+    def cluster_motion(self) -> FloatArray | None:
+        """Skin markers: per frame, the variance of each cluster's motion on its bone at the latest estimate.
+
+        Shape (2, 6): ``(omega, u)`` per component (rad^2, input units squared), parent then child
+        (:attr:`~jointfit_core.artefact_sums.SumsArtefact.cluster_motion`); None for rigid markers
+        and calibrations saved before it existed.
+        """
+        return self._cluster_motion
+
+    @property
     def solved_version(self) -> tuple[int, int]:
         """``(generation, version)`` of the window the current estimate was solved from (changes with every solve)."""
         return self._generation, self._solved_version
@@ -404,6 +415,7 @@ class JointEstimate:
         self._serial = result.serial
         self._statistical = result.statistical
         self._artefact_scale = result.artefact_scale
+        self._cluster_motion = result.cluster_motion
         self._white_sigma = result.white_noise_std
         self._solved_version = result.version
         self._installed()

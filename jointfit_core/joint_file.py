@@ -99,6 +99,7 @@ def to_dict(joint: OnlineJoint) -> dict[str, Any]:
         "serial_inflation": None if joint._serial is None else _serial_to_dict(joint._serial),
         "attachment": list(joint.attachment),
         "artefact_scale": joint._artefact_scale,
+        "cluster_motion": None if joint._cluster_motion is None else joint._cluster_motion.tolist(),
         "estimate": fit,
         "point_child_matched": None if joint._matched is None else joint._matched.tolist(),
     }
@@ -245,10 +246,24 @@ def _restore_estimate(est: OnlineJoint, data: dict[str, Any], template_size: flo
     if not (math.isfinite(scale) and scale >= 0.0):
         raise InputError(f"calibration: the artefact scale {scale!r} is not a finite number >= 0")
     est._artefact_scale = scale  # (saved again as loaded: a save after a restart writes the same file)
+    est._cluster_motion = _cluster_motion_from(data.get("cluster_motion"))  # absent before it existed
     matched = data.get("point_child_matched")  # absent before it existed
     est._matched = None if matched is None else check_vector3(matched, name="point_child_matched")
     est._outputs.clear()
     est._joint.arm(est._solution, est.length_scale)
+
+
+def _cluster_motion_from(value: Any) -> FloatArray | None:
+    """A saved ``cluster_motion`` (2 x 6 variances >= 0) or None; an InputError for anything else."""
+    if value is None:
+        return None
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.full(1, np.nan)
+    if arr.shape != (2, 6) or not (np.isfinite(arr).all() and (arr >= 0.0).all()):
+        raise InputError(f"calibration: cluster_motion must be 2 rows of 6 finite variances >= 0, got {value!r}")
+    return arr
 
 
 def _serial_to_dict(serial: SerialInflation) -> dict[str, float | None]:

@@ -93,6 +93,7 @@ class WorldOutput:
         dp: FloatArray,
         vp: VisibleSet,
         child_pose: tuple[FloatArray, FloatArray, VisibleSet] | None,
+        motion: FloatArray | None = None,
     ) -> JointOutput:
         """The joint in the world for one frame.
 
@@ -108,13 +109,20 @@ class WorldOutput:
             The parent's visible markers in this frame (their unit pose covariance ``W_unit``).
         child_pose : (ndarray (3, 3), ndarray (3,), VisibleSet) or None
             The child's pose and visible set; None when the child was not posed.
+        motion : ndarray, shape (2, 6), optional
+            Skin markers: per frame, the variance of each cluster's motion on its bone, ``(omega, u)``
+            per component, parent then child (:attr:`~jointfit_core.joint_estimate.JointEstimate.cluster_motion`);
+            None: rigid clusters (their pose is their bone's).
 
         Returns
         -------
         JointOutput
             See the class; the covariance adds this frame's parent pose noise at the joint,
-            ``R_p (cov_parent + s_p^2 J W_p J^T) R_p^T`` with ``J = [-[c_p]x, I]`` (Stoddart et al., eq. 4
-            for ``W``).
+            ``R_p (cov_parent + s_p^2 J W_p J^T + J M_p J^T) R_p^T`` with ``J = [-[c_p]x, I]`` (Stoddart et
+            al., eq. 4 for ``W``) and ``M_p = diag(motion[0])`` the parent cluster's motion on its bone:
+            the estimate is the joint in the bone's frame, a frame's cluster pose is off the bone's by
+            that motion, which its marker residuals do not show (a rigid cluster shift leaves none).
+            The direction and the relative rotation add the clusters' turns alike.
         """
         assert sol is not None
         key = vp.index.tobytes()
@@ -126,12 +134,15 @@ class WorldOutput:
             else:
                 local, local_cov, other = sol.point_parent, sol.cov_point_parent, sol.point_child
             J = np.concatenate([-skew(local), np.eye(3)], axis=1)
+            W = s2 * vp.W_unit
+            if motion is not None:
+                W = W + np.diag(motion[0])
             cov_dir = None
             if isinstance(sol, PoseSumsAxis):
                 Nx = skew(sol.direction_parent)
-                cov_dir = sol.cov_direction_parent + s2 * (Nx @ vp.W_unit[:3, :3] @ Nx.T)
+                cov_dir = sol.cov_direction_parent + Nx @ W[:3, :3] @ Nx.T
             # (the parent's part of the rotation's covariance, below, is this visible set's too)
-            cached = (local, local_cov + s2 * (J @ vp.W_unit @ J.T), other, cov_dir, s2 * vp.W_unit[:3, :3])
+            cached = (local, local_cov + J @ W @ J.T, other, cov_dir, W[:3, :3])
             self._cache[key] = cached
         local, cov_local, other, cov_dir_local, rot_cov_parent = cached
         position = Rp @ local + dp
@@ -153,5 +164,8 @@ class WorldOutput:
             residual = math.sqrt(float(diff @ diff))  # (the same correctly rounded square root as np.sqrt)
             Q = Rp.T @ Rc
             # the poses' rotation errors (local frames) as one left perturbation of Q (joint_angles.relative_rotation_cov)
-            Q_cov = rot_cov_parent + sigma[1] ** 2 * (Q @ vc.W_unit[:3, :3] @ Q.T)
+            Wc = sigma[1] ** 2 * vc.W_unit[:3, :3]
+            if motion is not None:
+                Wc = Wc + np.diag(motion[1, :3])
+            Q_cov = rot_cov_parent + Q @ Wc @ Q.T
         return JointOutput(self.kind, position, cov, direction, cov_dir, residual, Q, Q_cov)

@@ -1307,13 +1307,17 @@ def fit_centre_two_segments(
     c_p, c_c = a[:3], a[3:]
     stat: FloatArray | None = None
     scale = (0.0, 0.0)
+    motion = np.zeros(6)
     if model_error and skin and prep.noisy:
         parts = _centre_artefact(prep, Q, t, c_p, c_c, Wp6, Wc6, att, bread)
         cov, stat, scale = parts.total, parts.statistical, (float(parts.scale[0]), float(parts.scale[1]))
+        motion = parts.cluster_motion[0]
     elif model_error:
         cov = cov * _model_error_inflation(prep, c_p, c_c, Wp6_mean, Wc6_mean).factor
     cov_parent, cov_child = cov[:3, :3], cov[3:, 3:]
-    centre_world, cov_world, residual = _world_outputs(prep, c_p, c_c, cov_parent)
+    # a frame's centre is carried by the parent cluster's pose, off its bone's by the cluster's motion
+    lever = _lever_jacobian(c_p)
+    centre_world, cov_world, residual = _world_outputs(prep, c_p, c_c, cov_parent + (lever * motion) @ lever.T)
     # Identifiability is about the motion: judged on the part of the covariance that more or better
     # movement reduces (the soft-tissue part does not shrink with the data).
     v_parent, v_child = (cov_parent, cov_child) if stat is None else (stat[:3, :3], stat[3:, 3:])

@@ -252,6 +252,10 @@ class SolveResult:
         the pose-fit residuals (:mod:`~jointfit_core.white_noise_sums`), where the window has frame
         triples for it (else the pooled noise), input units; what a ball joint's bias compensation
         used. None for rigid markers (``noise_std`` is white noise there).
+    cluster_motion : ndarray, shape (2, 6) or None
+        Skin markers: per frame, the variance of each cluster's motion on its bone, ``(omega, u)``
+        per component, parent then child (:attr:`~jointfit_core.artefact_sums.SumsArtefact.cluster_motion`);
+        None for rigid markers.
     """
 
     solution: PoseSumsCentre | PoseSumsAxis
@@ -262,6 +266,7 @@ class SolveResult:
     statistical: PoseSumsCentre | PoseSumsAxis | None = None
     artefact_scale: float = 0.0
     white_noise_std: tuple[float, float] | None = None
+    cluster_motion: FloatArray | None = None
 
 
 def solve_window(request: SolveRequest) -> SolveResult:
@@ -346,7 +351,9 @@ def solve_window(request: SolveRequest) -> SolveResult:
     )
     window_s = float(sums.n) * dt if dt > 0.0 else float(sums.n) / NOMINAL_RATE_HZ
     total = _movement_verdict(_with_artefact(sol, art.cov), float(request.sums[_MOVE]), window_s)
-    return SolveResult(total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale, white)
+    return SolveResult(
+        total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale, white, art.cluster_motion
+    )
 
 
 def _white_noise(request: SolveRequest, pooled: tuple[float, float]) -> tuple[float, float]:
