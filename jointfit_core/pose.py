@@ -40,6 +40,7 @@ __all__ = [
     "point_covariance_local",
     "pose_noise_local",
     "skew",
+    "kabsch",
     "COLLINEAR_RTOL",
 ]
 
@@ -120,6 +121,18 @@ def skew(v: ArrayLike) -> FloatArray:
     out[..., 2, 0] = -v[..., 1]
     out[..., 2, 1] = v[..., 0]
     return out
+
+
+def kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Least-squares pose ``y ~ R x + d`` of fully visible points ``(n, 3)``: ``R`` (3, 3), ``d`` (3,)."""
+    xb = x.mean(axis=0)
+    yb = y.mean(axis=0)
+    U, _, Vt = np.linalg.svd((x - xb).T @ (y - yb))
+    R = Vt.T @ U.T
+    if np.linalg.det(R) < 0.0:
+        Vt[2] = -Vt[2]
+        R = Vt.T @ U.T
+    return R, yb - R @ xb
 
 
 def _check_template(template: ArrayLike, n_markers: int | None = None) -> FloatArray:

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .gate import GATE_JUMP_LOW, ShapeTrack, consistent_frames, gate_fails, marker_code
-from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, pose_covariance_local
+from .pose import COLLINEAR_RTOL, MIN_POSE_MARKERS, kabsch, pose_covariance_local
 from .segments import POSE_VAR_RATIO_MAX
 
 __all__ = [
@@ -85,18 +85,6 @@ _LEVEL_DECAY = 0.5 ** (1.0 / GATE_LEVEL_HALF_LIFE)
 
 #: ``cos(GATE_MAX_TURN_DEG)``: a turn test fails below it.
 COS_MAX_TURN = float(np.cos(np.deg2rad(GATE_MAX_TURN_DEG)))
-
-
-def kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Least-squares pose ``y ~ R x + d`` of fully visible points ``(n, 3)``: ``R`` (3, 3), ``d`` (3,)."""
-    xb = x.mean(axis=0)
-    yb = y.mean(axis=0)
-    U, _, Vt = np.linalg.svd((x - xb).T @ (y - yb))
-    R = Vt.T @ U.T
-    if np.linalg.det(R) < 0.0:
-        Vt[2] = -Vt[2]
-        R = Vt.T @ U.T
-    return R, yb - R @ xb
 
 
 def cos_turn(R: FloatArray, Q: FloatArray) -> FloatArray:

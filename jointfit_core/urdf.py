@@ -48,6 +48,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from .errors import InputError
+from .pose import kabsch
 
 __all__ = [
     "UrdfJoint", "urdf_joint_from_calibration", "urdf_from_calibrations", "joint_state_names", "link_names",
@@ -140,15 +141,6 @@ def urdf_joint_from_calibration(data: Mapping[str, Any], source: str = "calibrat
             raise InputError(f"{source}: the hinge direction {direction.tolist()} has no direction (length {norm:g})")
         direction = direction / norm
     return UrdfJoint(name, kind, pm, cm, tp, tc, pp.astype(np.float64), pc.astype(np.float64), direction)
-
-
-def kabsch(y: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """``y ~ R x + d`` (points (P, 3))."""
-    xb, yb = x.mean(axis=0), y.mean(axis=0)
-    U, _, Vt = np.linalg.svd((x - xb).T @ (y - yb))
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0)])
-    R = Vt.T @ D @ U.T
-    return R, yb - R @ xb
 
 
 def _prefix(markers: tuple[str, ...]) -> str:
