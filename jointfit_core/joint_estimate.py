@@ -377,7 +377,7 @@ class JointEstimate:
             sums=np.asarray(sums, dtype=np.float64),
             noise_std=self._noise_arg,
             length_scale=self.length_scale,
-            reference_direction=self.reference_direction,
+            reference_direction=self._sign_reference(),
             serial_correlation=self.serial_correlation,
             generation=self._generation,
             version=self._version,
@@ -385,6 +385,22 @@ class JointEstimate:
             radii=self._radii(),
             n_markers=self._marker_counts(),
         )
+
+    def _sign_reference(self) -> FloatArray | None:
+        """Hinge: the direction the next estimate's sign follows (parent frame), or None for the default rule.
+
+        The configured convention (:meth:`set_reference_direction`); without one, the latest
+        identifiable estimate's direction, so that the sign, once an estimate is identifiable,
+        is kept from solve to solve. The default rule alone (the parent-frame component of
+        largest magnitude positive) flipped the axis between solves whenever two components
+        were about as large (``test/test_hinge_sign_continuity.py``).
+        """
+        if self.reference_direction is not None:
+            return self.reference_direction
+        sol = self._solution
+        if isinstance(sol, PoseSumsAxis) and sol.identifiable:
+            return sol.direction_parent
+        return None
 
     def is_current(self, request: SolveRequest) -> bool:
         """Whether a :meth:`solve_request` was made in the state the estimator is in now.

@@ -78,7 +78,7 @@ class AxisConvention:
                 f"not chosen yet ({self.convention()} once identifiable, statistical direction sd < "
                 f"{SIGN_SD_MAX_DEG:g} deg; no axis output until then)"
             )
-        return "default: largest parent-frame component positive"
+        return "default: largest parent-frame component positive at the first identifiable estimate, kept after"
 
     def restored(self, source: str) -> None:
         """A saved calibration was restored: it carries its sign (``source``: where it was loaded from)."""

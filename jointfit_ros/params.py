@@ -458,7 +458,7 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "axis_from_marker when that is set, else from the clusters' centre (only when the marker lies beyond "
         "both clusters along the axis; otherwise the diagnostics say it is ambiguous). Chosen once, from the "
         "first identifiable estimate with a direction sd below 5 deg; empty: the parent-frame axis with the "
-        "largest component is positive.",
+        "largest component is positive at the first identifiable estimate, and later estimates keep that sign.",
     ),
     ParamSpec(
         "axis_from_marker",
