@@ -203,6 +203,8 @@ class MessageRouter:
         }
         #: The marker frames received (stamp and markers), to tell a looped replay's frames from new ones.
         self.repeats = RepeatedFrames(len(self.marker_runners))
+        #: Per pose topic, the poses received (stamp, position and orientation): a looped replay of rigid bodies.
+        self.pose_repeats = {topic: RepeatedFrames(len(pairs)) for topic, pairs in self.pose_topics.items()}
         self._horizons = (-1.0, np.zeros(0))  # (frame period they were taken at, ns; per marker joint, ns)
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
@@ -224,6 +226,8 @@ class MessageRouter:
         """Forget the unlabelled-cloud prediction and the frames received (after a reset of the joints)."""
         self.parser.reset()
         self.repeats.clear()
+        for repeats in self.pose_repeats.values():
+            repeats.clear()
 
     def _horizons_ns(self) -> NDArray[np.float64]:
         """How long a frame may stay in each marker joint's window (ns): :meth:`RepeatedFrames.fresh`'s horizons.
@@ -377,8 +381,9 @@ class MessageRouter:
         index, stamps, frame_ids, frames, problems = (
             parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
         )
+        repeated_before = self.repeats.count
         replayed = ~self.repeats.fresh_many(real_stamps, frames, stamps, self._horizons_ns())  # (K, marker joints)
-        self.counters["repeated_frames"] = self.repeats.count
+        self.counters["repeated_frames"] += self.repeats.count - repeated_before
         column = {id(r): j for j, r in enumerate(self.marker_runners)}
         if index.size:
             if self.recorded is not None:
@@ -450,8 +455,9 @@ class MessageRouter:
         self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
+        repeated_before = self.repeats.count
         fresh = self.repeats.fresh(stamp_ns, frame, t, self._horizons_ns())
-        self.counters["repeated_frames"] = self.repeats.count
+        self.counters["repeated_frames"] += self.repeats.count - repeated_before
         return route_frame(
             self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping,
             replayed=None if fresh.all() else ~fresh, on_error=self.on_joint_error,
@@ -491,12 +497,37 @@ class MessageRouter:
         if t is None:
             return []
         self.frame_id = self.frame_id or msg.frame_id
+        pairs = self.pose_topics.get(topic, [])
+        fresh = self._fresh_pose(topic, msg.stamp_ns, np.concatenate([msg.position, msg.quaternion]), t, pairs)
         out = []
-        for runner, source in self.pose_topics.get(topic, []):
-            result = _isolated(runner, self.on_joint_error, runner.pose, source, t, R, msg.position)
+        for k, (runner, source) in enumerate(pairs):
+            # a pose received before and still in the joint's window (a looped replay): published, not added again
+            # (it completes a pair only with its partner of the same stamp, which came round with it)
+            runner.estimator.replayed = not fresh[k]
+            try:
+                result = _isolated(runner, self.on_joint_error, runner.pose, source, t, R, msg.position)
+            finally:
+                runner.estimator.replayed = False
             if result is not None:
                 out.append(Routed(runner, msg.stamp_ns, msg.frame_id, result))
         return out
+
+    def _fresh_pose(
+        self, topic: str, stamp_ns: int, values: FloatArray, time_ns: int, pairs: list[tuple[JointRunner, int]]
+    ) -> NDArray[np.bool_]:
+        """Per joint of a pose topic, whether this pose (stamp, position, quaternion) is new to its window.
+
+        :class:`RepeatedFrames` as for the marker frames; the horizons are the joints' windows, those in
+        frames at the marker topic's measured period (none known: kept out for as long as remembered).
+        """
+        repeats = self.pose_repeats.get(topic)
+        if repeats is None:
+            return np.ones(len(pairs), dtype=bool)
+        windows = [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r, _ in pairs]
+        before = repeats.count
+        fresh = repeats.fresh(stamp_ns, values, time_ns, window_horizon(windows, self.gaps.period_s * 1e9))
+        self.counters["repeated_frames"] += repeats.count - before
+        return fresh
 
 
 def _note_dropped(runners: Iterable[JointRunner], n: int) -> None:

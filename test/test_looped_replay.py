@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from bagtools import pose_stamped_bytes
 from helpers import rig_frames, rig_router
 
+from jointfit_core.synthetic import two_segment_motion
 from jointfit_ros.inputs import MessageRouter
+from jointfit_ros.params import node_config
 from jointfit_ros.raw import pose_array_bytes
 from jointfit_ros.repeated_frames import RepeatedFrames, window_horizon
+from jointfit_ros.runner import JointRunner
 from jointfit_ros.timeline import RESTART_FRAMES
 
 S = 1_000_000_000
@@ -135,3 +139,43 @@ def test_a_window_shorter_than_the_loop_keeps_one_copy_of_every_frame() -> None:
     assert hip.estimator.replayed_frames == 0  # every looped frame had left its 1 s window
     assert knee.estimator.n_window == N  # each frame once in its 10 s window
     assert all(r.estimate(force=True) for r in runners)
+
+
+def test_looped_rigid_body_poses_leave_the_window_and_the_covariance_as_after_one_pass() -> None:
+    """Pose topics (rigid-body input) too: a looped bag's poses are published but not added again.
+
+    Before, every loop of a 2 s bag of two PoseStamped topics entered the hip's window again: after
+    3 loops it held the bag 4 times and the centre's covariance was ~1/4 of one pass's.
+    """
+    cfg = node_config({
+        "joints": ["hip"], "hip.type": "ball", "hip.parent_pose_topic": "/p", "hip.child_pose_topic": "/c",
+        "hip.pose_translation_sd": 0.0003, "hip.pose_rotation_sd_deg": 0.1, "hip.attachment": "rigid",
+        "hip.window_s": 10.0,
+    })
+    rig = two_segment_motion(np.random.default_rng(1), kind="ball")
+    rng = np.random.default_rng(2)
+    bag = []
+    for k in range(N):
+        R_p, d_p, R_c, d_c = rig.poses_at(k * STEP / S)
+        stamp = 100 * S + k * STEP
+        bag.append(("/p", pose_stamped_bytes(stamp, "world", R_p[0], d_p[0] / 1000.0 + rng.normal(0.0, 3e-4, 3))))
+        bag.append(("/c", pose_stamped_bytes(stamp, "world", R_c[0], d_c[0] / 1000.0 + rng.normal(0.0, 3e-4, 3))))
+    runner = JointRunner(cfg.joints[0], cfg)
+    router = MessageRouter(cfg, [runner])
+    for topic, raw in bag:
+        router.pose(topic, raw)
+    assert runner.estimate(force=True)
+    n_before, sol_before = runner.estimator.n_window, runner.estimator.solution
+    assert sol_before is not None and sol_before.identifiable
+    published = 0
+    for _ in range(3):
+        for topic, raw in bag:
+            published += len(router.pose(topic, raw))
+    assert router.counters["timeline_restarts"] == 3
+    assert router.counters["repeated_frames"] >= 3 * 2 * (N - RESTART_FRAMES)
+    assert published >= 3 * (N - RESTART_FRAMES)  # the looped poses were published
+    assert runner.estimator.n_window == n_before
+    assert runner.estimate(force=True)
+    sol = runner.estimator.solution
+    assert sol is not None
+    np.testing.assert_allclose(sol.cov_parent, sol_before.cov_parent, rtol=1e-9, atol=0.0)  # type: ignore[union-attr]
