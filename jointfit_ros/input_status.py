@@ -70,6 +70,7 @@ class InputStatus:
             "oversized clouds dropped": c["oversized_clouds"],
             "frames held back: a second publisher": c["second_publisher"],
             "markers at exactly (0, 0, 0) (zero_is_missing false)": c["zero_markers"],
+            "messages with header.stamp 0 (arrival time used)": c["zero_stamps"],
         })
         level = WARN if any(c[k] for k in _PROBLEMS) else OK
         message = "receiving" if c["messages"] else f"waiting for {cfg.marker_topic}"
@@ -82,6 +83,13 @@ class InputStatus:
             message += (
                 f"; {c['zero_markers']} markers at exactly (0, 0, 0) taken as positions (zero_is_missing is false): "
                 "if the driver sends occluded markers as zeros, set zero_is_missing: true"
+            )
+        if c["zero_stamps"]:
+            level = max(level, WARN)
+            message += (
+                f"; {c['zero_stamps']} messages with header.stamp 0 (not set by the publisher): their arrival time "
+                "is used, so transport delays enter the time windows and the outputs' stamps; stamp the messages "
+                "at capture"
             )
         if c["second_publisher"]:
             message += (

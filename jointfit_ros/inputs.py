@@ -138,6 +138,11 @@ class MessageRouter:
     clock : callable returning int, optional
         Arrival time of a message in ns (the node: ``time.monotonic_ns``), for
         the :attr:`timeline`; None for recordings.
+    stamp_clock : callable returning int, optional
+        The time (ns, the node's ROS clock) that stands in for a message's ``header.stamp`` when
+        that is exactly 0 (a driver that leaves it unset: every frame after the first was dropped
+        as not increasing, and no joint ever estimated); counted as ``zero_stamps``. None
+        (recordings): such messages keep their stamp 0 and are counted.
 
     Attributes
     ----------
@@ -149,7 +154,8 @@ class MessageRouter:
         labels), ``unassigned`` (markers of unlabelled clouds left without a
         point), ``oversized_clouds`` (unlabelled clouds of more than
         ``max_cloud_points`` points, dropped), ``zero_markers`` (markers at exactly (0, 0, 0) taken as
-        positions: ``zero_is_missing`` false), ``second_publisher`` (frames held back while two publishers'
+        positions: ``zero_is_missing`` false), ``zero_stamps`` (messages whose ``header.stamp`` is 0:
+        unset; live, their arrival time stands in), ``second_publisher`` (frames held back while two publishers'
         frames interleave, :attr:`interleave`), and the :attr:`timeline`'s ``invalid_stamps``,
         ``stamps_ahead`` (dropped) and ``timeline_restarts``; ``repeated_frames``:
         marker frames received again (the same stamp and markers: a looped
@@ -180,9 +186,14 @@ class MessageRouter:
     """
 
     def __init__(
-        self, cfg: NodeConfig, runners: Iterable[JointRunner], clock: Callable[[], int] | None = None
+        self,
+        cfg: NodeConfig,
+        runners: Iterable[JointRunner],
+        clock: Callable[[], int] | None = None,
+        stamp_clock: Callable[[], int] | None = None,
     ) -> None:
         self.cfg = cfg
+        self.stamp_clock = stamp_clock
         self.runners = list(runners)
         self.marker_runners = [r for r in self.runners if r.uses_marker_topic]
         self.chained = any(r.chained for r in self.marker_runners)
@@ -195,6 +206,7 @@ class MessageRouter:
         self.counters = {
             "messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0,
             "oversized_clouds": 0, "repeated_frames": 0, "second_publisher": 0, "zero_markers": 0,
+            "zero_stamps": 0,
         }
         #: Per input topic, its matched publishers and whether frames of two of them interleave (the node sets
         #: the counts from its subscriptions' matched events: :meth:`set_publishers`).
@@ -377,6 +389,7 @@ class MessageRouter:
         self.counters["messages"] += parsed.n
         self.counters["label_problems"] += parsed.label_problems
         self.counters["zero_markers"] += parsed.zero_markers
+        self.counters["zero_stamps"] += int(np.count_nonzero(parsed.stamps_ns == 0))  # blocks: recordings, kept as 0
         parsed, real_stamps = self._times(parsed)  # stamps_ns: the timeline's times from here on
         index, stamps, frame_ids, frames, problems = (
             parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
@@ -442,6 +455,7 @@ class MessageRouter:
             _note_dropped(self.marker_runners, 1)
             return []
         stamp_ns, frame_id, frame = got
+        stamp_ns = self._stamp(stamp_ns)
         if self._second_publisher(self.cfg.marker_topic, frame, self.marker_runners):
             return []
         if defer_bookkeeping:
@@ -493,12 +507,13 @@ class MessageRouter:
             return []
         if self._second_publisher(topic, msg.position.reshape(1, 3), [r for r, _ in self.pose_topics.get(topic, [])]):
             return []
-        t = self._time(msg.stamp_ns, topic, [r for r, _ in self.pose_topics.get(topic, [])])
+        stamp_ns = self._stamp(msg.stamp_ns)
+        t = self._time(stamp_ns, topic, [r for r, _ in self.pose_topics.get(topic, [])])
         if t is None:
             return []
         self.frame_id = self.frame_id or msg.frame_id
         pairs = self.pose_topics.get(topic, [])
-        fresh = self._fresh_pose(topic, msg.stamp_ns, np.concatenate([msg.position, msg.quaternion]), t, pairs)
+        fresh = self._fresh_pose(topic, stamp_ns, np.concatenate([msg.position, msg.quaternion]), t, pairs)
         out = []
         for k, (runner, source) in enumerate(pairs):
             # a pose received before and still in the joint's window (a looped replay): published, not added again
@@ -509,8 +524,15 @@ class MessageRouter:
             finally:
                 runner.estimator.replayed = False
             if result is not None:
-                out.append(Routed(runner, msg.stamp_ns, msg.frame_id, result))
+                out.append(Routed(runner, stamp_ns, msg.frame_id, result))
         return out
+
+    def _stamp(self, stamp_ns: int) -> int:
+        """A message's stamp; exactly 0 (unset) is counted and, live, replaced by the :attr:`stamp_clock`'s time."""
+        if stamp_ns != 0:
+            return stamp_ns
+        self.counters["zero_stamps"] += 1
+        return stamp_ns if self.stamp_clock is None else int(self.stamp_clock())
 
     def _fresh_pose(
         self, topic: str, stamp_ns: int, values: FloatArray, time_ns: int, pairs: list[tuple[JointRunner, int]]

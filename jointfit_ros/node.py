@@ -145,7 +145,9 @@ class JointfitNode(Node):
         )
 
         # Inputs.
-        self.router = MessageRouter(self.cfg, self.runners.values(), clock=time.monotonic_ns)
+        self.router = MessageRouter(
+            self.cfg, self.runners.values(), clock=time.monotonic_ns, stamp_clock=self._now_ns
+        )
         # one joint's exception on a frame: logged and counted by the guard, the other joints still get the frame
         self.router.on_joint_error = lambda runner, exc: self.guard.caught(f"markers (joint {runner.cfg.name})", exc)
         self.router.defer_bookkeeping = True  # _on_markers publishes a frame's outputs before its bookkeeping
