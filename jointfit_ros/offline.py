@@ -346,7 +346,8 @@ def _bag_topics(path: Path, cfg: NodeConfig) -> tuple[list[str], int]:
 
 
 def _check_inputs_read(run: FitRun) -> None:
-    """Refuse a bag whose marker messages were all unreadable (e.g. another type's bytes under the topic's type).
+    """Refuse a bag whose marker messages were all unreadable (e.g. another type's bytes under the topic's type),
+    or all stamped 0 (the joints would drop every frame after the first as not increasing).
 
     Raises
     ------
@@ -364,6 +365,12 @@ def _check_inputs_read(run: FitRun) -> None:
         raise InputError(
             f"{run.path}: none of the {c['messages']} messages on {run.cfg.marker_topic} could be read as "
             f"{run.cfg.marker_type} ({last})"
+        )
+    if read > 1 and c.get("zero_stamps", 0) >= read:
+        raise InputError(
+            f"{run.path}: every message on {run.cfg.marker_topic} has header.stamp 0 (not set by its publisher): "
+            "a recording's frames cannot be put in time order without stamps (replayed into the live node, "
+            "jointfit_replay, they take their arrival times); record with the stamps set"
         )
 
 

@@ -10,9 +10,14 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Iterator
+from pathlib import Path
 
-from helpers import rig_frames, rig_router
+import pytest
+import yaml
+from bagtools import write_raw_bag
+from helpers import fake_rig_values, rig_frames, rig_router
 
+from jointfit_ros.cli import fit_main
 from jointfit_ros.input_status import InputStatus
 from jointfit_ros.raw import pose_array_bytes
 
@@ -64,3 +69,19 @@ def test_stamps_that_are_set_are_kept() -> None:
         out += [r.stamp_ns for r in router.markers(pose_array_bytes(T0 + k * 4_000_000, "world", f))]
     assert router.counters["zero_stamps"] == 0
     assert 5 not in out
+
+
+def test_a_bag_whose_stamps_are_all_zero_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Offline: one error line naming the cause, not "no estimate: building templates (1/20)" per joint."""
+    frames = rig_frames(600, 1)
+    bag = write_raw_bag(tmp_path / "bag", [
+        ("/markers", "geometry_msgs/msg/PoseArray", 10**9 + k * 4_000_000, pose_array_bytes(0, "world", f))
+        for k, f in enumerate(frames)
+    ])
+    config = tmp_path / "p.yaml"
+    config.write_text(yaml.safe_dump({"jointfit": {"ros__parameters": fake_rig_values()}}))
+    code = fit_main([str(bag), "--config", str(config), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 1 and len(lines) == 1 and "header.stamp 0" in lines[0], err
+    assert not (tmp_path / "out").exists()
