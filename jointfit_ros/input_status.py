@@ -11,6 +11,7 @@ publishes it with the joints' statuses.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from typing import Any
 
 from .activity import InputActivity
@@ -38,7 +39,15 @@ class InputStatus:
         self._samples: InputActivity | None = None  # the input's activity samples (made at the first tick)
         self._gaps: deque[tuple[float, int, int]] = deque()  # (tick time, frames received, frames missed)
 
-    def status(self, now: float, counters: dict[str, int], gaps: Any, cfg: NodeConfig, values: dict[str, object]) -> tuple[int, str]:
+    def status(
+        self,
+        now: float,
+        counters: dict[str, int],
+        gaps: Any,
+        cfg: NodeConfig,
+        values: dict[str, object],
+        incompatible: Mapping[str, str] | None = None,
+    ) -> tuple[int, str]:
         """The input status's level and message at ``now`` (monotonic s); adds its values to ``values``.
 
         Parameters
@@ -53,6 +62,9 @@ class InputStatus:
             The node's parameters (topic, frame id, ``stale_after``).
         values : dict
             The status's key-value pairs; the counters, the input rate and the frames missed are added.
+        incompatible : mapping of str to str, optional
+            Input topics with publishers whose QoS their subscription cannot take: the last policy that
+            did not match (:attr:`~jointfit_ros.inputs.MessageRouter.incompatible`).
 
         Returns
         -------
@@ -71,6 +83,7 @@ class InputStatus:
             "frames held back: a second publisher": c["second_publisher"],
             "markers at exactly (0, 0, 0) (zero_is_missing false)": c["zero_markers"],
             "messages with header.stamp 0 (arrival time used)": c["zero_stamps"],
+            "publishers not matched: incompatible QoS": c["incompatible_qos"],
         })
         level = WARN if any(c[k] for k in _PROBLEMS) else OK
         message = "receiving" if c["messages"] else f"waiting for {cfg.marker_topic}"
@@ -84,6 +97,13 @@ class InputStatus:
                 f"; {c['zero_markers']} markers at exactly (0, 0, 0) taken as positions (zero_is_missing is false): "
                 "if the driver sends occluded markers as zeros, set zero_is_missing: true"
             )
+        if c["incompatible_qos"]:
+            level = max(level, WARN)
+            for topic, policy in sorted((incompatible or {}).items()):
+                message += (
+                    f"; a publisher on {topic} offers a QoS this node's subscription cannot take ({policy} policy; "
+                    f"qos_reliability is {cfg.qos_reliability}): none of its messages arrive"
+                )
         if c["zero_stamps"]:
             level = max(level, WARN)
             message += (

@@ -206,8 +206,12 @@ class MessageRouter:
         self.counters = {
             "messages": 0, "malformed": 0, "wrong_frame_id": 0, "label_problems": 0, "unassigned": 0,
             "oversized_clouds": 0, "repeated_frames": 0, "second_publisher": 0, "zero_markers": 0,
-            "zero_stamps": 0,
+            "zero_stamps": 0, "incompatible_qos": 0,
         }
+        #: Per input topic with publishers whose QoS its subscription cannot take, the last policy that did not
+        #: match (:meth:`set_incompatible`).
+        self.incompatible: dict[str, str] = {}
+        self._incompatible_totals: dict[str, int] = {}
         #: Per input topic, its matched publishers and whether frames of two of them interleave (the node sets
         #: the counts from its subscriptions' matched events: :meth:`set_publishers`).
         self.interleave: dict[str, InterleaveGuard] = {
@@ -251,6 +255,22 @@ class MessageRouter:
             windows = [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r in self.marker_runners]
             self._horizons = (period_ns, window_horizon(windows, period_ns))
         return self._horizons[1]
+
+    def set_incompatible(self, topic: str, total: int, policy: str) -> None:
+        """``total`` publishers on ``topic`` offer a QoS its subscription cannot take (its incompatible-QoS event).
+
+        ``policy``: the last QoS policy that did not match (e.g. RELIABILITY). None of their messages can
+        arrive; counted over the input topics (``incompatible_qos``) and said once in the log.
+        """
+        seen = self._incompatible_totals.get(topic, 0)
+        self._incompatible_totals[topic] = total
+        self.counters["incompatible_qos"] += max(total - seen, 0)
+        self.incompatible[topic] = policy
+        self.last_problem = (
+            f"incompatible_qos:{topic}",
+            f"a publisher on {topic} offers a QoS this subscription cannot take ({policy} policy): "
+            "none of its messages arrive",
+        )
 
     def set_publishers(self, topic: str, n: int) -> None:
         """``topic`` has ``n`` matched publishers now (its subscription's matched event)."""

@@ -39,7 +39,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import String
@@ -279,11 +279,23 @@ class JointfitNode(Node):
             self._tf.send(self._segments.tree(R, t, frame), stamp_ns)
 
     def _publisher_count(self, topic: str) -> SubscriptionEventCallbacks:
-        """The input's matched event: the router holds frames back while two publishers' frames interleave."""
+        """The input's events: matched (the router holds frames back while two publishers' frames interleave),
+        and publishers whose QoS cannot be matched (said in ``jointfit: input``; another message type on the
+        topic is found in the graph, :mod:`jointfit_ros.graph`)."""
+
+        def qos(event: Any) -> None:
+            try:
+                policy = QoSPolicyKind(int(event.last_policy_kind)).name
+            except ValueError:
+                policy = str(event.last_policy_kind)
+            self.router.set_incompatible(topic, int(event.total_count), policy)
+            self._report_problem()
+
         return SubscriptionEventCallbacks(
             matched=self.guard.wrap(
                 f"publishers {topic}", lambda event: self.router.set_publishers(topic, int(event.current_count))
-            )
+            ),
+            incompatible_qos=self.guard.wrap(f"incompatible QoS {topic}", qos),
         )
 
     def _pose_callback(self, topic: str) -> Callable[[bytes], None]:
@@ -421,7 +433,9 @@ class JointfitNode(Node):
         arr.header.stamp = stamp_from_ns(self._now_ns())
         node_values: dict[str, object] = {}
         now = time.monotonic()
-        level, message = self._input_status.status(now, self.counters, self.router.gaps, self.cfg, node_values)
+        level, message = self._input_status.status(
+            now, self.counters, self.router.gaps, self.cfg, node_values, self.router.incompatible
+        )
         node_values.update({
             "robot description": self._description.problem or f"published ({self._description.joints} frozen joints)",
             "input frame_id": self.router.frame_id,
