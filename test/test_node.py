@@ -14,7 +14,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -139,13 +139,6 @@ def _stop(proc: subprocess.Popen[bytes]) -> str:
             proc.wait()
     out = proc.stdout.read().decode(errors="replace") if proc.stdout else ""
     return out
-
-
-@pytest.fixture
-def client() -> Iterator[_Client]:
-    c = _Client()
-    yield c
-    c.close()
 
 
 def _stream(client: _Client, rigs: Any, rng: np.random.Generator, t0: float, n: int, t_start: float) -> None:

@@ -15,7 +15,6 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from collections.abc import Iterator
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from std_srvs.srv import SetBool, Trigger
@@ -25,13 +24,6 @@ from jointfit_ros.conversions import pose_array_bytes
 from jointfit_ros.fake_mocap import frame_at, make_rigs, marker_names, truth_at
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def client() -> Iterator[_Client]:
-    c = _Client()
-    yield c
-    c.close()
 
 
 def _params(path: Path, tmp: Path) -> Path:

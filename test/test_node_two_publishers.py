@@ -9,7 +9,6 @@ second publisher is gone.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -25,13 +24,6 @@ from jointfit_ros.conversions import pose_array_bytes
 from jointfit_ros.fake_mocap import frame_at, make_rigs, truth_at
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def client() -> Iterator[_Client]:
-    c = _Client()
-    yield c
-    c.close()
 
 
 def _z(client: _Client, rigs: object, t0: float, since: float) -> list[float]:

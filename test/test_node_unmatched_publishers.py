@@ -8,7 +8,6 @@ graph: ``jointfit_ros.graph``.)
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,13 +17,6 @@ pytest.importorskip("rclpy")
 from test_node import _Client, _params, _start_node, _stop
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def client() -> Iterator[_Client]:
-    c = _Client()
-    yield c
-    c.close()
 
 
 def _input_status_says(client: _Client, words: str, timeout: float = 15.0) -> dict[str, str]:

@@ -7,7 +7,6 @@ Now it takes the arrival time, publishes the hip with those stamps, and says so 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -21,13 +20,6 @@ from jointfit_ros.conversions import pose_array_bytes
 from jointfit_ros.fake_mocap import frame_at, make_rigs
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def client() -> Iterator[_Client]:
-    c = _Client()
-    yield c
-    c.close()
 
 
 def test_zero_stamps_are_estimated_on_their_arrival_times(client: _Client, tmp_path: Path) -> None:
