@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .record_ring import RecordRing
 from .ring_replay import RingBlockReplay
 from .window_spec import WindowSpec, window_spec
 
@@ -112,16 +113,13 @@ class SlidingSums:
         self._first_ref = first_ref
         self._shift = shift
         self._count_index = np.zeros(0, dtype=np.intp) if count_index is None else np.asarray(count_index)
-        self._max_frames = int(max_frames)
         if isinstance(max_frames, bool) or int(max_frames) < 1:
             raise InputError(f"max_frames: expected a positive integer, got {max_frames!r}")
         cap = spec.frames if spec.frames is not None else (0 if spec.exponential else min(64, int(max_frames)))
         # Without a reference point the contributions never change, so the ring keeps them
         # (leaving frames are subtracted without recomputing); otherwise it keeps the records.
         self._store_contrib = ref_of is None
-        self._width = self.n_sums if self._store_contrib else self.record_size
-        self._rec = np.empty((cap, self._width))
-        self._stamp = np.empty(cap)
+        self._ring = RecordRing(cap, self.n_sums if self._store_contrib else self.record_size, int(max_frames))
         if spec.exponential:
             hl = spec.half_life if spec.half_life is not None else spec.half_life_s
             self._log_decay = -np.log(2.0) / float(hl)  # type: ignore[arg-type]
@@ -136,8 +134,7 @@ class SlidingSums:
         self._counts_sq = np.zeros(self._count_index.size)
         self.n_pushed = 0
         self.last_stamp: float | None = None
-        self._lo = 0  # absolute index of the oldest frame in the window
-        self._hi = 0  # one past the newest
+        self._ring.clear()
         self._shadow_active = False
         self._shadow = np.zeros(self.n_sums)
         self._shadow_ref = np.zeros(3)
@@ -148,7 +145,7 @@ class SlidingSums:
     @property
     def n_window(self) -> int:
         """Number of frames currently in the window (ring modes; for forgetting, frames pushed)."""
-        return self.n_pushed if self.spec.exponential else self._hi - self._lo
+        return self.n_pushed if self.spec.exponential else self._ring.hi - self._ring.lo
 
     def window_records(self) -> FloatArray:
         """Copy of the records in the window, oldest first, shape (n, R) (ring modes only).
@@ -158,15 +155,13 @@ class SlidingSums:
         """
         if self.spec.exponential:
             raise InputError("window_records: exponential forgetting keeps no records")
-        idx = np.arange(self._lo, self._hi) % max(self._rec.shape[0], 1)
-        return self._rec[idx].copy()
+        return self._ring.window_rows()
 
     def window_stamps(self) -> FloatArray:
         """Stamps of the records in the window (NaN when not stamped), shape (n,)."""
         if self.spec.exponential:
             raise InputError("window_stamps: exponential forgetting keeps no records")
-        idx = np.arange(self._lo, self._hi) % max(self._rec.shape[0], 1)
-        return self._stamp[idx].copy()
+        return self._ring.window_stamps()
 
     # ------------------------------------------------------------------ updates
 
@@ -335,23 +330,14 @@ class SlidingSums:
 
     def _push_many_ring(self, c: FloatArray, st: FloatArray | None) -> None:
         """Exact replay of :meth:`_push_contrib` over a block (see :meth:`push_many`; :mod:`~jointfit_core.ring_replay`)."""
+        ring = self._ring
         replay = RingBlockReplay(
-            c, st, self.spec, self._lo, self._hi, self._rec, self._stamp, self._max_frames, self._ring_stamp_segments()
+            c, st, self.spec, ring.lo, ring.hi, ring.rows, ring.stamps, ring.max_frames, ring.stamp_segments()
         )
         # the sums first: they read the ring as it was before the block, which stored_ring then overwrites
         state = (self.sums, self._shadow, self._shadow_active, self._shadow_next, self._shadow_end)
         self.sums, self._shadow, self._shadow_active, self._shadow_next, self._shadow_end = replay.sums_and_shadow(state)
-        self._rec, self._stamp, self._lo, self._hi = replay.stored_ring()
-
-    def _ring_stamp_segments(self) -> list[FloatArray]:
-        """The window's stamps as (at most two) contiguous pieces of the ring, oldest first."""
-        cap = self._rec.shape[0]
-        if self._hi <= self._lo or cap == 0:
-            return []
-        a, b = self._lo % cap, self._hi % cap
-        if a < b:
-            return [self._stamp[a:b]]
-        return [self._stamp[a:], self._stamp[:b]]
+        ring.rows, ring.stamps, ring.lo, ring.hi = replay.stored_ring()
 
     def _push_decay(self, record: FloatArray, stamp: float | None) -> None:
         if self.n_pushed > 0:
@@ -372,28 +358,18 @@ class SlidingSums:
                 self.sums = self._shift(self.sums, self.ref, new_ref)
                 self.ref = new_ref
 
-    def _grow(self) -> None:
-        cap = self._rec.shape[0]
-        new_cap = min(2 * cap, self._max_frames)
-        idx = np.arange(self._lo, self._hi) % cap
-        rec = np.empty((new_cap, self._width))
-        stamp = np.empty(new_cap)
-        rec[np.arange(self._lo, self._hi) % new_cap] = self._rec[idx]
-        stamp[np.arange(self._lo, self._hi) % new_cap] = self._stamp[idx]
-        self._rec, self._stamp = rec, stamp
-
     def _push_ring(self, record: FloatArray, stamp: float | None) -> None:
         # Frames that leave: the oldest for a frame window, the stale ones for a time window.
-        lo, hi = self._lo, self._hi
-        cap = self._rec.shape[0]
+        ring = self._ring
+        lo = ring.lo
         new_lo = lo
         if self.spec.frames is not None:
-            if hi - lo >= self.spec.frames:
+            if ring.hi - lo >= self.spec.frames:
                 new_lo = lo + 1
         else:
-            new_lo = self._time_lo(float(stamp))  # type: ignore[arg-type]
-            cap = self._rec.shape[0]
-        leaving = [i % cap for i in range(lo, new_lo)]
+            new_lo = ring.horizon_lo(float(stamp), float(self.spec.seconds))  # type: ignore[arg-type]
+        cap = ring.capacity
+        leaving = ring.slots(lo, new_lo)
         if self._store_contrib:
             c_new = record if self._contrib is None else self._contrib(record[None, :], self.ref[None, :])[0]
             self._push_contrib(c_new, stamp, leaving, new_lo, cap)
@@ -414,14 +390,14 @@ class SlidingSums:
         block = np.empty((n_rows, self.record_size))
         refs = np.empty((n_rows, 3))
         block[0] = record
-        block[1:n_live] = self._rec[leaving]
+        block[1:n_live] = ring.rows[leaving]
         refs[:n_live] = self.ref
         signs = np.ones(n_rows)
         signs[1:n_live] = -1.0
         if self._shadow_active:
             block[n_live] = record
-            block[n_live + 1 : n_live + 1 + len(inside)] = self._rec[inside]
-            block[n_rows - len(chunk) :] = self._rec[chunk]
+            block[n_live + 1 : n_live + 1 + len(inside)] = ring.rows[inside]
+            block[n_rows - len(chunk) :] = ring.rows[chunk]
             refs[n_live:] = self._shadow_ref
             signs[n_live + 1 : n_live + 1 + len(inside)] = -1.0
         assert self._contrib is not None  # records with a reference point always have a contribution function
@@ -430,12 +406,7 @@ class SlidingSums:
         if self._shadow_active:
             self._shadow += signs[n_live:] @ c[n_live:]
 
-        # Store the new record.
-        slot = hi % cap
-        self._rec[slot] = record
-        self._stamp[slot] = np.nan if stamp is None else float(stamp)
-        self._lo = new_lo
-        self._hi = hi + 1
+        ring.append(record, stamp, new_lo)
 
         if self._shadow_active and self._shadow_next >= self._shadow_end:
             self.sums = self._shadow
@@ -452,48 +423,23 @@ class SlidingSums:
         out: FloatArray = self.sums[self._count_index]
         return out
 
-    def _time_lo(self, stamp: float) -> int:
-        """Oldest frame kept by a time window after adding a frame at ``stamp`` (grows the ring if needed)."""
-        lo, hi = self._lo, self._hi
-        cap = self._rec.shape[0]
-        horizon = stamp - float(self.spec.seconds)  # type: ignore[arg-type]
-        new_lo = lo
-        while new_lo < hi and self._stamp[new_lo % cap] <= horizon:
-            new_lo += 1
-        if hi - new_lo >= cap:
-            if cap < self._max_frames:
-                self._grow()
-            else:
-                new_lo = hi - cap + 1
-        return new_lo
-
     def _push_contrib(
         self, c_new: FloatArray, stamp: float | None, leaving: list[int], new_lo: int, cap: int
     ) -> None:
         """Ring of stored contributions: subtract and re-add them, never recompute."""
-        lo, hi = self._lo, self._hi
-        rec = self._rec
+        ring = self._ring
+        lo = ring.lo
+        rec = ring.rows
         self.sums += c_new
-        if len(leaving) == 1:
-            self.sums -= rec[leaving[0]]
-        elif leaving:
-            self.sums -= rec[leaving].sum(axis=0)
+        ring.subtract_rows(self.sums, leaving)
         if self._shadow_active:
             self._shadow += c_new
-            inside = self._shadow_leaving(lo, new_lo, cap)
-            if len(inside) == 1:
-                self._shadow -= rec[inside[0]]
-            elif inside:
-                self._shadow -= rec[inside].sum(axis=0)
+            ring.subtract_rows(self._shadow, self._shadow_leaving(lo, new_lo, cap))
             self._shadow_next = max(self._shadow_next, new_lo)
             if self._shadow_next < self._shadow_end:
                 self._shadow += rec[self._shadow_next % cap]
                 self._shadow_next += 1
-        slot = hi % cap
-        rec[slot] = c_new  # a copy: the caller may reuse its buffer
-        self._stamp[slot] = np.nan if stamp is None else float(stamp)
-        self._lo = new_lo
-        self._hi = hi + 1
+        ring.append(c_new, stamp, new_lo)  # a copy: the caller may reuse its buffer
         if self._shadow_active and self._shadow_next >= self._shadow_end:
             self.sums = self._shadow
             self._shadow_active = False
@@ -513,6 +459,23 @@ class SlidingSums:
         new_ref = self._ref_of(self.sums, self.ref) if self._ref_of is not None else None
         self._shadow_ref = self.ref.copy() if new_ref is None else np.asarray(new_ref, dtype=np.float64)
         self._shadow = np.zeros(self.n_sums)
-        self._shadow_next = self._lo
-        self._shadow_end = self._hi
+        self._shadow_next = self._ring.lo
+        self._shadow_end = self._ring.hi
         self._shadow_active = True
+
+    # ------------------------------------------------------------------ the ring's state, as bench/vector_core.py reads it
+
+    @property
+    def _rec(self) -> FloatArray:
+        """The ring's rows, shape (capacity, R or L) (:attr:`RecordRing.rows <jointfit_core.record_ring.RecordRing.rows>`)."""
+        return self._ring.rows
+
+    @property
+    def _lo(self) -> int:
+        """Absolute index of the oldest frame in the window."""
+        return self._ring.lo
+
+    @property
+    def _hi(self) -> int:
+        """One past the newest frame's absolute index."""
+        return self._ring.hi
