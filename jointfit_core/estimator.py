@@ -395,7 +395,11 @@ class OnlineJoint(JointSegments):
             if verdict is not None:  # labels put right or markers held out, and the frame judged again
                 return after_failure(self, missing, ps, verdict, stamp, frame_no, refit, relabelled)
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
-            if self._joint_fails(R, d, frame_no, stamp):
+            if not self._joint.check_one(R, d, frame_no, self._frozen):  # the joint test (jointfit_core.joint_gate)
+                self.joint_gated_frames += 1
+                self._drop("joint_gated")
+                if self.gate_log is not None:
+                    self.gate_log.append((frame_no, 2, np.nan if stamp is None else stamp))
                 self._stats.chained = False
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
@@ -443,22 +447,6 @@ class OnlineJoint(JointSegments):
         """:meth:`JointEstimate.thaw <jointfit_core.joint_estimate.JointEstimate.thaw>`; a later freeze judges afresh."""
         super().thaw()
         self._fit.restart()
-
-    def _joint_fails(self, R: FloatArray, d: FloatArray, frame_no: int, stamp: float | None) -> bool:
-        """The joint test (:mod:`jointfit_core.joint_gate`) of a frame posed ``R`` (2, 3, 3), ``d`` (2, 3); counts a failure."""
-        z = np.empty((3, 4))
-        Rp_t = R[0].T
-        np.matmul(Rp_t, R[1], out=z[:, :3])
-        np.matmul(Rp_t, d[1] - d[0], out=z[:, 3])
-        score, e = self._joint.score_one(z, frame_no)
-        if self._joint.fails(score):
-            self.joint_gated_frames += 1
-            self._drop("joint_gated")
-            if self.gate_log is not None:
-                self.gate_log.append((frame_no, 2, np.nan if stamp is None else stamp))
-            return True
-        self._joint.pass_one(z, frame_no, score, e, self._frozen)
-        return False
 
     # ------------------------------------------------------------------ calibration
 
