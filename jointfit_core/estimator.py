@@ -49,7 +49,7 @@ from .joint_outliers import GateLimits, after_failure
 from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
 from .pose import MIN_POSE_MARKERS
-from .segment_pair import PairSet, poses
+from .segment_pair import poses
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
@@ -403,7 +403,7 @@ class OnlineJoint(JointSegments):
                 self._stats.chained = False
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
-        if self._frozen and self._misfits(ss, ps):
+        if self._frozen and self._fit.add_frame(ss, ps, self._sigma):  # the markers off the calibration's templates
             self._drop("markers_off_calibration")
             self.frame_poses = None
             return None
@@ -421,16 +421,6 @@ class OnlineJoint(JointSegments):
         return self._outputs.output(
             self._solution, self._sigma, R[0], d[0], ps.parent, child_pose, self._cluster_motion
         )
-
-    def _misfits(self, ss: FloatArray, ps: PairSet) -> bool:
-        """A frozen joint's frame: whether its segments' recent pose-fit residual is beyond the calibration's noise.
-
-        :class:`~jointfit_core.calibration_fit.CalibrationFit`; its words in :attr:`calibration_problem`.
-        """
-        for k, vs in enumerate((ps.parent, ps.child)):
-            if vs is not None:
-                self._fit.add(k, float(ss[k]), float(vs.dof), self._sigma[k])
-        return bool(self._fit.problem)
 
     @property
     def calibration_problem(self) -> str:
