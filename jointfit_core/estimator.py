@@ -50,6 +50,7 @@ from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
 from .pose import MIN_POSE_MARKERS
 from .segment_pair import poses
+from .template_stage import TemplateStage
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
@@ -207,7 +208,7 @@ class OnlineJoint(JointSegments):
     def reset(self) -> None:
         """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
         super().reset()
-        self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
+        self._template_stage = TemplateStage(self.template_frames)  # the frames seen while the templates are built
         self.dropped: dict[str, int] = {}
         #: Frames received again (:attr:`replayed`) and therefore not added to the window.
         self.replayed_frames = 0
@@ -298,15 +299,10 @@ class OnlineJoint(JointSegments):
             if self.replayed:
                 self.replayed_frames += 1
                 return None
-            pose.parent.add_template_frame(yp)
-            pose.child.add_template_frame(yc)
-            self._pending.append((yp.copy(), yc.copy(), st, number))
-            if len(self._pending) > 20 * self.template_frames:
-                self._pending.pop(0)
+            if self._template_stage.add(pose, yp, yc, st, number):
                 self._drop("before_templates")
             if self.templates_ready:
-                pending, self._pending = self._pending, []
-                for p_frame, c_frame, p_stamp, p_number in pending:
+                for p_frame, c_frame, p_stamp, p_number in self._template_stage.release():
                     self._add(pose.fill(p_frame, c_frame), p_stamp, p_number)
             return None
         return self._add(pose.fill(yp, yc), st, number)
