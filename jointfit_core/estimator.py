@@ -8,7 +8,7 @@ returns, for every frame, the joint's world position (or axis) carried by the
 current parent pose, with its covariance. This module holds its frame path:
 the frames' intake (checked, numbered and stamped by a
 :class:`~jointfit_core.frame_clock.FrameClock`; the frames kept while the
-templates are built), the per-frame step (posing, the outlier gate, the joint
+templates are built, :class:`~jointfit_core.template_stage.TemplateStage`), the per-frame step (posing, the outlier gate, the joint
 test, the window, the output) and the counters of what was dropped. The rest
 is in the modules around it:
 
@@ -133,34 +133,15 @@ class OnlineJoint(JointSegments):
 
     Notes
     -----
-    **Templates.** Each segment's template is the mean of its first
-    ``template_frames`` fully visible frames, each aligned (Kabsch) to the
-    first of them; the local frame is therefore that first frame's
-    orientation about the template centroid. Templates are then fixed, so
-    that estimates in the local frames stay comparable and a saved
-    calibration stays valid.
-
-    **Statistics.** Per frame, both poses are fitted to the visible markers
-    (Stoddart eq. 4); frames where a segment's visible markers are nearly
-    collinear or bunched (rotation variance above
-    :data:`~jointfit_core.segments.POSE_VAR_RATIO_MAX` times the full
-    template's) are not used. The window keeps the sums of
-    :class:`~jointfit_core.segments.PoseSums`, of the unit-noise local pose
-    covariances of the visible marker sets, and of the pose-fit residuals;
-    ``noise_std_*`` is the pooled residual estimate over the window
-    (``sum SS / sum (3 n_vis - 6)``, not corrected for the template's own
-    degrees of freedom, which is negligible after a few dozen frames).
-
-    **Estimate** and **serial correlation**: what :meth:`estimate` solves and
-    how its covariances are widened, in the Notes of the base,
-    :class:`~jointfit_core.joint_estimate.JointEstimate`.
-
-    **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
-    ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise
-    at the centre, ``J = [-[c_p]x, I]``), from the latest :meth:`estimate`
-    (``cov_parent`` with the serial-correlation factor; the pose-noise term
-    without it: the correlation makes the frames' errors alike, it does not
-    make one frame's error larger).
+    Where each step of a frame is described: the templates, built from the
+    first frames, in :mod:`jointfit_core.template_stage`; the poses, and the
+    **statistics** a frame adds to the window, in the Notes of
+    :class:`~jointfit_core.joint_sums.RelativePoseSums`; the **estimate**
+    solved from the window and how the **serial correlation** widens its
+    covariances, in the Notes of the base,
+    :class:`~jointfit_core.joint_estimate.JointEstimate`; the **per-frame
+    output** of :meth:`update` and its covariance, in
+    :meth:`WorldOutput.output <jointfit_core.joint_world.WorldOutput.output>`.
     """
 
     def __init__(
