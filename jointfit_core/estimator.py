@@ -40,7 +40,6 @@ from numpy.typing import ArrayLike, NDArray
 from . import joint_blocks, joint_file
 from .calibration_fit import CalibrationFit
 from .checks import check_frame
-from .errors import InputError
 from .frame_clock import FrameClock
 from .joint_args import check_settings, virtual_markers_template
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
@@ -48,7 +47,6 @@ from .joint_gate import JointTrack
 from .joint_outliers import GateLimits, after_failure
 from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
-from .pose import MIN_POSE_MARKERS
 from .segment_pair import poses
 from .template_stage import TemplateStage
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
@@ -266,11 +264,6 @@ class OnlineJoint(JointSegments):
             self._drop("stamp_not_increasing")
             return None
         if self._pose is None:
-            if yp.shape[0] < MIN_POSE_MARKERS or yc.shape[0] < MIN_POSE_MARKERS:
-                raise InputError(
-                    f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got "
-                    f"{yp.shape[0]} and {yc.shape[0]}"
-                )
             self._make_segments(yp.shape[0], yc.shape[0])
         pose = self._pose
         assert pose is not None
