@@ -728,7 +728,7 @@ class VectorSkeleton:
         self._index_history()
 
     def _push(self, je: Any, c: FloatArray, every: bool) -> None:
-        """:meth:`SlidingSums._push_contrib <jointfit_core.stats.SlidingSums._push_contrib>` of the joints ``je``, stacked."""
+        """``RingWindowSums._push_contrib`` (:mod:`jointfit_core.ring_sums`) of the joints ``je``, stacked."""
         cap = self.cap
         lo, hi = self.lo[je].copy(), self.hi[je].copy()  # (copies: je may be a slice, and lo, hi are updated below)
         leave = hi - lo >= self.frames_max[je]

@@ -18,8 +18,17 @@ calibration's noise: the joint then withholds its outputs and says why.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from .segment_pair import PairSet
 
 __all__ = ["MISFIT_FRAMES", "MISFIT_RMS_RATIO", "CalibrationFit"]
+
+FloatArray = NDArray[np.float64]
 
 #: Frames (posed, while frozen) the residual level averages over (exponentially), and needs before it is judged.
 MISFIT_FRAMES = 50
@@ -77,3 +86,20 @@ class CalibrationFit:
         elif self._count[k] >= MISFIT_FRAMES:
             self._misfit[k] = ""
         self.problem = self._misfit[0] or self._misfit[1]
+
+    def add_frame(self, ss: FloatArray, ps: PairSet, sigma: tuple[float, float]) -> bool:
+        """One frame's posed segments (:meth:`add` of each); whether the markers no longer fit (:attr:`problem`).
+
+        Parameters
+        ----------
+        ss : ndarray, shape (2,)
+            The parent's and the child's residual sums of squares (input units squared).
+        ps : PairSet
+            Their visible sets (None: not posed); their degrees of freedom.
+        sigma : (float, float)
+            The calibration's noise of the parent and the child (input units).
+        """
+        for k, vs in enumerate((ps.parent, ps.child)):
+            if vs is not None:
+                self.add(k, float(ss[k]), float(vs.dof), sigma[k])
+        return bool(self.problem)

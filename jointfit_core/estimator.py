@@ -8,7 +8,7 @@ returns, for every frame, the joint's world position (or axis) carried by the
 current parent pose, with its covariance. This module holds its frame path:
 the frames' intake (checked, numbered and stamped by a
 :class:`~jointfit_core.frame_clock.FrameClock`; the frames kept while the
-templates are built), the per-frame step (posing, the outlier gate, the joint
+templates are built, :class:`~jointfit_core.template_stage.TemplateStage`), the per-frame step (posing, the outlier gate, the joint
 test, the window, the output) and the counters of what was dropped. The rest
 is in the modules around it:
 
@@ -40,7 +40,6 @@ from numpy.typing import ArrayLike, NDArray
 from . import joint_blocks, joint_file
 from .calibration_fit import CalibrationFit
 from .checks import check_frame
-from .errors import InputError
 from .frame_clock import FrameClock
 from .joint_args import check_settings, virtual_markers_template
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
@@ -48,8 +47,8 @@ from .joint_gate import JointTrack
 from .joint_outliers import GateLimits, after_failure
 from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
-from .pose import MIN_POSE_MARKERS
-from .segment_pair import PairSet, poses
+from .segment_pair import poses
+from .template_stage import TemplateStage
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
@@ -132,34 +131,15 @@ class OnlineJoint(JointSegments):
 
     Notes
     -----
-    **Templates.** Each segment's template is the mean of its first
-    ``template_frames`` fully visible frames, each aligned (Kabsch) to the
-    first of them; the local frame is therefore that first frame's
-    orientation about the template centroid. Templates are then fixed, so
-    that estimates in the local frames stay comparable and a saved
-    calibration stays valid.
-
-    **Statistics.** Per frame, both poses are fitted to the visible markers
-    (Stoddart eq. 4); frames where a segment's visible markers are nearly
-    collinear or bunched (rotation variance above
-    :data:`~jointfit_core.segments.POSE_VAR_RATIO_MAX` times the full
-    template's) are not used. The window keeps the sums of
-    :class:`~jointfit_core.segments.PoseSums`, of the unit-noise local pose
-    covariances of the visible marker sets, and of the pose-fit residuals;
-    ``noise_std_*`` is the pooled residual estimate over the window
-    (``sum SS / sum (3 n_vis - 6)``, not corrected for the template's own
-    degrees of freedom, which is negligible after a few dozen frames).
-
-    **Estimate** and **serial correlation**: what :meth:`estimate` solves and
-    how its covariances are widened, in the Notes of the base,
-    :class:`~jointfit_core.joint_estimate.JointEstimate`.
-
-    **Per-frame output** (:meth:`update`): ``R_p c_p + d_p`` with covariance
-    ``R_p (cov_parent + J W_p(t) J^T) R_p^T`` (this frame's parent pose noise
-    at the centre, ``J = [-[c_p]x, I]``), from the latest :meth:`estimate`
-    (``cov_parent`` with the serial-correlation factor; the pose-noise term
-    without it: the correlation makes the frames' errors alike, it does not
-    make one frame's error larger).
+    Where each step of a frame is described: the templates, built from the
+    first frames, in :mod:`jointfit_core.template_stage`; the poses, and the
+    **statistics** a frame adds to the window, in the Notes of
+    :class:`~jointfit_core.joint_sums.RelativePoseSums`; the **estimate**
+    solved from the window and how the **serial correlation** widens its
+    covariances, in the Notes of the base,
+    :class:`~jointfit_core.joint_estimate.JointEstimate`; the **per-frame
+    output** of :meth:`update` and its covariance, in
+    :meth:`WorldOutput.output <jointfit_core.joint_world.WorldOutput.output>`.
     """
 
     def __init__(
@@ -207,7 +187,7 @@ class OnlineJoint(JointSegments):
     def reset(self) -> None:
         """Forget the frames, estimate, frozen state, counters and built templates (fixed ones stay)."""
         super().reset()
-        self._pending: list[tuple[FloatArray, FloatArray, float | None, int]] = []
+        self._template_stage = TemplateStage(self.template_frames)  # the frames seen while the templates are built
         self.dropped: dict[str, int] = {}
         #: Frames received again (:attr:`replayed`) and therefore not added to the window.
         self.replayed_frames = 0
@@ -284,11 +264,6 @@ class OnlineJoint(JointSegments):
             self._drop("stamp_not_increasing")
             return None
         if self._pose is None:
-            if yp.shape[0] < MIN_POSE_MARKERS or yc.shape[0] < MIN_POSE_MARKERS:
-                raise InputError(
-                    f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got "
-                    f"{yp.shape[0]} and {yc.shape[0]}"
-                )
             self._make_segments(yp.shape[0], yc.shape[0])
         pose = self._pose
         assert pose is not None
@@ -298,15 +273,10 @@ class OnlineJoint(JointSegments):
             if self.replayed:
                 self.replayed_frames += 1
                 return None
-            pose.parent.add_template_frame(yp)
-            pose.child.add_template_frame(yc)
-            self._pending.append((yp.copy(), yc.copy(), st, number))
-            if len(self._pending) > 20 * self.template_frames:
-                self._pending.pop(0)
+            if self._template_stage.add(pose, yp, yc, st, number):
                 self._drop("before_templates")
             if self.templates_ready:
-                pending, self._pending = self._pending, []
-                for p_frame, c_frame, p_stamp, p_number in pending:
+                for p_frame, c_frame, p_stamp, p_number in self._template_stage.release():
                     self._add(pose.fill(p_frame, c_frame), p_stamp, p_number)
             return None
         return self._add(pose.fill(yp, yc), st, number)
@@ -395,11 +365,15 @@ class OnlineJoint(JointSegments):
             if verdict is not None:  # labels put right or markers held out, and the frame judged again
                 return after_failure(self, missing, ps, verdict, stamp, frame_no, refit, relabelled)
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
-            if self._joint_fails(R, d, frame_no, stamp):
+            if not self._joint.check_one(R, d, frame_no, self._frozen):  # the joint test (jointfit_core.joint_gate)
+                self.joint_gated_frames += 1
+                self._drop("joint_gated")
+                if self.gate_log is not None:
+                    self.gate_log.append((frame_no, 2, np.nan if stamp is None else stamp))
                 self._stats.chained = False
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
-        if self._frozen and self._misfits(ss, ps):
+        if self._frozen and self._fit.add_frame(ss, ps, self._sigma):  # the markers off the calibration's templates
             self._drop("markers_off_calibration")
             self.frame_poses = None
             return None
@@ -418,16 +392,6 @@ class OnlineJoint(JointSegments):
             self._solution, self._sigma, R[0], d[0], ps.parent, child_pose, self._cluster_motion
         )
 
-    def _misfits(self, ss: FloatArray, ps: PairSet) -> bool:
-        """A frozen joint's frame: whether its segments' recent pose-fit residual is beyond the calibration's noise.
-
-        :class:`~jointfit_core.calibration_fit.CalibrationFit`; its words in :attr:`calibration_problem`.
-        """
-        for k, vs in enumerate((ps.parent, ps.child)):
-            if vs is not None:
-                self._fit.add(k, float(ss[k]), float(vs.dof), self._sigma[k])
-        return bool(self._fit.problem)
-
     @property
     def calibration_problem(self) -> str:
         """Empty while a frozen joint's markers fit its calibration; else why its outputs are withheld."""
@@ -443,22 +407,6 @@ class OnlineJoint(JointSegments):
         """:meth:`JointEstimate.thaw <jointfit_core.joint_estimate.JointEstimate.thaw>`; a later freeze judges afresh."""
         super().thaw()
         self._fit.restart()
-
-    def _joint_fails(self, R: FloatArray, d: FloatArray, frame_no: int, stamp: float | None) -> bool:
-        """The joint test (:mod:`jointfit_core.joint_gate`) of a frame posed ``R`` (2, 3, 3), ``d`` (2, 3); counts a failure."""
-        z = np.empty((3, 4))
-        Rp_t = R[0].T
-        np.matmul(Rp_t, R[1], out=z[:, :3])
-        np.matmul(Rp_t, d[1] - d[0], out=z[:, 3])
-        score, e = self._joint.score_one(z, frame_no)
-        if self._joint.fails(score):
-            self.joint_gated_frames += 1
-            self._drop("joint_gated")
-            if self.gate_log is not None:
-                self.gate_log.append((frame_no, 2, np.nan if stamp is None else stamp))
-            return True
-        self._joint.pass_one(z, frame_no, score, e, self._frozen)
-        return False
 
     # ------------------------------------------------------------------ calibration
 

@@ -249,8 +249,7 @@ def _restore_estimate(est: OnlineJoint, data: dict[str, Any], template_size: flo
     est._cluster_motion = _cluster_motion_from(data.get("cluster_motion"))  # absent before it existed
     matched = data.get("point_child_matched")  # absent before it existed
     est._matched = None if matched is None else check_vector3(matched, name="point_child_matched")
-    est._outputs.clear()
-    est._joint.arm(est._solution, est.length_scale)
+    est._installed()  # as any new estimate: the per-frame outputs' cache cleared, the joint test armed
 
 
 def _cluster_motion_from(value: Any) -> FloatArray | None:

@@ -214,6 +214,28 @@ class JointTrack:
         if frozen and not self.armed and self.residual is not None:
             self.limit = self._limit()
 
+    def check_one(self, R: FloatArray, d: FloatArray, number: int, frozen: bool) -> bool:
+        """The test of one frame (the per-frame path): whether it passes (then it is kept as :meth:`pass_one` keeps it).
+
+        Parameters
+        ----------
+        R, d : ndarray, shapes (2, 3, 3) and (2, 3)
+            The frame's parent and child poses (template frame to world, input units).
+        number : int
+            Its frame number.
+        frozen : bool
+            Whether the joint is frozen (:meth:`pass_one`).
+        """
+        z = np.empty((3, 4))  # the child's pose relative to the parent's, [Q | t]
+        Rp_t = R[0].T
+        np.matmul(Rp_t, R[1], out=z[:, :3])
+        np.matmul(Rp_t, d[1] - d[0], out=z[:, 3])
+        score, e = self.score_one(z, number)
+        if self.fails(score):
+            return False
+        self.pass_one(z, number, score, e, frozen)
+        return True
+
     def fails(self, score: float) -> bool:
         """Whether a frame of ``score`` (:meth:`scores_of`) fails (and counts the failures in a row)."""
         if not (self.armed and score > self.limit):  # NaN: no reference, passes

@@ -15,9 +15,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from .errors import InputError
 from .joint_args import JointSettings
 from .joint_estimate import JointEstimate
 from .lever import lever_ratios
+from .pose import MIN_POSE_MARKERS
 from .segment_pair import SegmentPair
 from .segments import PoseSumsCentre
 
@@ -139,6 +141,16 @@ class JointSegments(JointEstimate):
         return ""
 
     def _make_segments(self, n_parent: int, n_child: int) -> None:
-        """The two segments, of ``n_parent`` and ``n_child`` markers (their templates to build)."""
+        """The two segments, of ``n_parent`` and ``n_child`` markers (their templates to build).
+
+        Raises
+        ------
+        InputError
+            Fewer than :data:`~jointfit_core.pose.MIN_POSE_MARKERS` markers on either (from a first frame).
+        """
+        if n_parent < MIN_POSE_MARKERS or n_child < MIN_POSE_MARKERS:
+            raise InputError(
+                f"parent, child: expected at least {MIN_POSE_MARKERS} markers per segment, got {n_parent} and {n_child}"
+            )
         self.n_markers = (n_parent, n_child)
         self._pose = SegmentPair(n_parent, n_child, self.template_frames)

@@ -116,6 +116,21 @@ class RelativePoseSums:
         Whether the last frame that reached the joint entered the statistics: the next frame then
         carries its lag pair with it (see :class:`~jointfit_core.joint_estimate.JointEstimate`, Notes,
         *lag pairs*). The joint clears it for a frame that reaches it but cannot enter.
+
+    Notes
+    -----
+    **What a frame adds.** Per frame, both poses are fitted to the visible
+    markers (Stoddart eq. 4); a frame where a segment's visible markers are
+    nearly collinear or bunched (rotation variance above
+    :data:`~jointfit_core.segments.POSE_VAR_RATIO_MAX` times the full
+    template's) does not reach the window. The window keeps the sums of
+    :class:`~jointfit_core.segments.PoseSums`, of the unit-noise local pose
+    covariances of the visible marker sets, and of the pose-fit residuals;
+    the joint's noise estimate
+    (:attr:`~jointfit_core.joint_estimate.JointEstimate.noise_std`) is the
+    pooled residual over the window (``sum SS / sum (3 n_vis - 6)``, not
+    corrected for the template's own degrees of freedom, which is negligible
+    after a few dozen frames).
     """
 
     def __init__(self, spec: WindowSpec, skin: bool, moments: bool) -> None:

@@ -122,7 +122,9 @@ class WorldOutput:
             al., eq. 4 for ``W``) and ``M_p = diag(motion[0])`` the parent cluster's motion on its bone:
             the estimate is the joint in the bone's frame, a frame's cluster pose is off the bone's by
             that motion, which its marker residuals do not show (a rigid cluster shift leaves none).
-            The direction and the relative rotation add the clusters' turns alike.
+            The direction and the relative rotation add the clusters' turns alike. ``cov_parent``
+            carries the estimate's serial-correlation factor; the pose-noise terms do not: the
+            correlation makes the frames' errors alike, it does not make one frame's error larger.
         """
         assert sol is not None
         key = vp.index.tobytes()

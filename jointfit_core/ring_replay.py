@@ -1,8 +1,9 @@
 """Exact replay of a block of pushes into a sliding window's ring of stored contributions.
 
 :meth:`jointfit_core.stats.SlidingSums.push_many` adds the frames of a block
-to a frame or time window whose ring keeps the per-frame contribution vectors
-themselves (no reference point). Pushing them one by one costs one Python
+to a frame or time window (:class:`~jointfit_core.ring_sums.RingWindowSums`)
+whose ring keeps the per-frame contribution vectors themselves (no reference
+point). Pushing them one by one costs one Python
 step per frame; :class:`RingBlockReplay` works out the whole block's schedule
 with integer arithmetic instead (which frames leave at each step, which the
 drift control's shadow rebuild adds, removes and rebuilds, and at which steps
@@ -11,7 +12,7 @@ last replacement, and the shadow, each as one sequential ``numpy.add.reduce``
 of their start value and the rows added and subtracted in push order. The
 results are therefore bit for bit those of the sequential pushes
 (:meth:`~jointfit_core.stats.SlidingSums.push` /
-``SlidingSums._push_contrib``), at O(M) numpy work and O(cycles) Python steps.
+``RingWindowSums._push_contrib``), at O(M) numpy work and O(cycles) Python steps.
 """
 
 from __future__ import annotations
@@ -137,7 +138,7 @@ class RingBlockReplay:
 
     def _group_codes(self, steps: IntArray, next_before: IntArray | None = None, end: int = 0) -> IntArray:
         """Codes of the sums of the frames leaving at each of ``steps`` (with ``next_before``: only
-        those the shadow holds), summed as ``SlidingSums._push_contrib`` sums them (``rec[rows].sum(axis=0)``,
+        those the shadow holds), summed as ``RingWindowSums._push_contrib`` sums them (:meth:`~jointfit_core.record_ring.RecordRing.subtract_rows`,
         row after row; the frames left out are -0.0 rows, which change nothing)."""
         first = self.lo_before[steps]
         width = int((self.lo_after[steps] - first).max())

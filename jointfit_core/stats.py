@@ -3,22 +3,25 @@
 The online estimators keep, for the frames of a window, the sums of fixed-size
 per-frame contribution vectors (counts, moments, pose products). Adding the
 newest frame and subtracting the frames that leave costs the same whatever
-the window length; the raw records of the window stay in a ring buffer so
-that leaving frames can be subtracted.
+the window length. :class:`SlidingSums` is the one interface to the two kinds
+of window:
 
-Drift. Repeated add/subtract accumulates rounding error without bound, and
-sums about a reference point that no longer lies near the data lose digits
-by cancellation. :class:`SlidingSums` bounds both: a *shadow* copy of the sums
-is rebuilt from the ring buffer one frame per update (about a fresh
-reference point at the data's current mean), and replaces the live sums when
-it has covered the window. So the sums in use always come from at most about
-two window lengths of add/subtract steps, and every update does the same,
-constant amount of work (no periodic O(window) spike).
-
-Exponential forgetting needs no ring buffer: the sums decay by a constant
-factor per frame (or per second), so old rounding errors decay with them;
-the reference point is moved by an exact shift of the sums when the data
-have wandered from it.
+* a window of frames or of seconds (:class:`~jointfit_core.ring_sums.RingWindowSums`):
+  the rows of the window's frames stay in a ring buffer
+  (:class:`~jointfit_core.record_ring.RecordRing`) so that leaving frames can
+  be subtracted. Drift: repeated add/subtract accumulates rounding error
+  without bound, and sums about a reference point that no longer lies near
+  the data lose digits by cancellation; a *shadow* copy of the sums
+  (:class:`~jointfit_core.shadow_sums.ShadowSums`) is rebuilt from the ring
+  one frame per update (about a fresh reference point at the data's current
+  mean), and replaces the live sums when it has covered the window. So the
+  sums in use always come from at most about two window lengths of
+  add/subtract steps, and every update does the same, constant amount of
+  work (no periodic O(window) spike);
+* exponential forgetting (:class:`~jointfit_core.forgetting_sums.ForgettingSums`)
+  needs no ring buffer: the sums decay by a constant factor per frame (or per
+  second), so old rounding errors decay with them; the reference point is
+  moved by an exact shift of the sums when the data have wandered from it.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .ring_replay import RingBlockReplay
+from .forgetting_sums import ForgettingSums
+from .ring_sums import RingWindowSums
 from .window_spec import WindowSpec, window_spec
 
 __all__ = ["WindowSpec", "SlidingSums", "window_spec"]
@@ -43,9 +47,6 @@ ContribFn = Callable[[FloatArray, FloatArray], FloatArray]
 ShiftFn = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
 #: New reference point (3,) from the sums (L,) about ``ref``, or None to keep ``ref``.
 RefFn = Callable[[FloatArray, FloatArray], "FloatArray | None"]
-
-#: Under exponential forgetting, check every this many frames whether to move the reference point.
-_REREF_EVERY = 256
 
 
 class SlidingSums:
@@ -83,10 +84,14 @@ class SlidingSums:
 
     Notes
     -----
-    Frame windows keep a ring buffer of ``frames`` records; time windows a
-    ring that grows by doubling up to ``max_frames``. Each :meth:`push`
-    computes the contributions of the new frame, of the leaving frames and
-    of one frame of the shadow rebuild in a single vectorised call.
+    The sums themselves are kept by a
+    :class:`~jointfit_core.ring_sums.RingWindowSums` (frame and time windows)
+    or a :class:`~jointfit_core.forgetting_sums.ForgettingSums` (exponential
+    forgetting); this class checks what is pushed and counts it. Frame
+    windows keep a ring buffer of ``frames`` records; time windows a ring
+    that grows by doubling up to ``max_frames``. Each :meth:`push` computes
+    the contributions of the new frame, of the leaving frames and of one
+    frame of the shadow rebuild in a single vectorised call.
     """
 
     def __init__(
@@ -108,47 +113,57 @@ class SlidingSums:
         if contrib is None and (ref_of is not None or record_size != n_sums):
             raise InputError("contrib: None needs records of the contributions' length and no reference point")
         self._contrib = contrib
-        self._ref_of = ref_of
         self._first_ref = first_ref
-        self._shift = shift
         self._count_index = np.zeros(0, dtype=np.intp) if count_index is None else np.asarray(count_index)
-        self._max_frames = int(max_frames)
         if isinstance(max_frames, bool) or int(max_frames) < 1:
             raise InputError(f"max_frames: expected a positive integer, got {max_frames!r}")
-        cap = spec.frames if spec.frames is not None else (0 if spec.exponential else min(64, int(max_frames)))
-        # Without a reference point the contributions never change, so the ring keeps them
-        # (leaving frames are subtracted without recomputing); otherwise it keeps the records.
-        self._store_contrib = ref_of is None
-        self._width = self.n_sums if self._store_contrib else self.record_size
-        self._rec = np.empty((cap, self._width))
-        self._stamp = np.empty(cap)
+        # The sums, and how frames enter and leave them: a frame or time window's, or exponential forgetting's.
+        self._window_sums: RingWindowSums | ForgettingSums
         if spec.exponential:
-            hl = spec.half_life if spec.half_life is not None else spec.half_life_s
-            self._log_decay = -np.log(2.0) / float(hl)  # type: ignore[arg-type]
+            self._window_sums = ForgettingSums(spec, self.n_sums, contrib, ref_of, shift, self._count_index)
+        else:
+            self._window_sums = RingWindowSums(spec, self.record_size, self.n_sums, contrib, ref_of, int(max_frames))
         self.clear()
 
     # ------------------------------------------------------------------ state
 
     def clear(self) -> None:
         """Forget every frame."""
-        self.ref = np.zeros(3)
-        self.sums = np.zeros(self.n_sums)
-        self._counts_sq = np.zeros(self._count_index.size)
+        self._window_sums.clear()
         self.n_pushed = 0
         self.last_stamp: float | None = None
-        self._lo = 0  # absolute index of the oldest frame in the window
-        self._hi = 0  # one past the newest
-        self._shadow_active = False
-        self._shadow = np.zeros(self.n_sums)
-        self._shadow_ref = np.zeros(3)
-        self._shadow_end = 0
-        self._shadow_next = 0
         self._stamps_sorted = True  # every stamp pushed so far at least the previous one (time windows)
+
+    @property
+    def sums(self) -> FloatArray:
+        """The sums of the contributions in the window (weighted, with forgetting), shape (L,)."""
+        return self._window_sums.sums
+
+    @property
+    def ref(self) -> FloatArray:
+        """The reference point the contributions are about, shape (3,) (the origin without one)."""
+        return self._window_sums.ref
+
+    @property
+    def counts_sq(self) -> FloatArray:
+        """Sums of squared weights of the count entries (equal to the counts in ring modes)."""
+        if isinstance(self._window_sums, ForgettingSums):
+            return self._window_sums.counts_sq
+        out: FloatArray = self.sums[self._count_index]
+        return out
 
     @property
     def n_window(self) -> int:
         """Number of frames currently in the window (ring modes; for forgetting, frames pushed)."""
-        return self.n_pushed if self.spec.exponential else self._hi - self._lo
+        if isinstance(self._window_sums, ForgettingSums):
+            return self.n_pushed
+        return self._window_sums.ring.hi - self._window_sums.ring.lo
+
+    def _ring_window(self, what: str) -> RingWindowSums:
+        """The ring window; an InputError naming ``what`` asked for one under exponential forgetting."""
+        if not isinstance(self._window_sums, RingWindowSums):
+            raise InputError(f"{what}: exponential forgetting keeps no records")
+        return self._window_sums
 
     def window_records(self) -> FloatArray:
         """Copy of the records in the window, oldest first, shape (n, R) (ring modes only).
@@ -156,17 +171,11 @@ class SlidingSums:
         When the sums use no reference point the ring keeps the contributions
         instead, shape (n, L).
         """
-        if self.spec.exponential:
-            raise InputError("window_records: exponential forgetting keeps no records")
-        idx = np.arange(self._lo, self._hi) % max(self._rec.shape[0], 1)
-        return self._rec[idx].copy()
+        return self._ring_window("window_records").ring.window_rows()
 
     def window_stamps(self) -> FloatArray:
         """Stamps of the records in the window (NaN when not stamped), shape (n,)."""
-        if self.spec.exponential:
-            raise InputError("window_stamps: exponential forgetting keeps no records")
-        idx = np.arange(self._lo, self._hi) % max(self._rec.shape[0], 1)
-        return self._stamp[idx].copy()
+        return self._ring_window("window_stamps").ring.window_stamps()
 
     # ------------------------------------------------------------------ updates
 
@@ -184,15 +193,15 @@ class SlidingSums:
         if self.spec.needs_stamps and stamp is None:
             raise InputError(f"stamp: the window ({self.spec.describe()}) needs a stamp with every frame")
         if self.n_pushed == 0 and self._first_ref is not None:
-            self.ref = np.asarray(self._first_ref(record), dtype=np.float64)
+            self._window_sums.ref = np.asarray(self._first_ref(record), dtype=np.float64)
         if self.spec.seconds is not None:
             st = float(stamp)  # type: ignore[arg-type]  # checked above
             if not (math.isfinite(st) and (self.last_stamp is None or st >= self.last_stamp)):
                 self._stamps_sorted = False
-        if self.spec.exponential:
-            self._push_decay(record, stamp)
+        if isinstance(self._window_sums, ForgettingSums):
+            self._window_sums.push(record, stamp, self.n_pushed, self.last_stamp)
         else:
-            self._push_ring(record, stamp)
+            self._window_sums.push(record, stamp)
         self.n_pushed += 1
         if stamp is not None:
             self.last_stamp = float(stamp)
@@ -216,30 +225,21 @@ class SlidingSums:
 
         Notes
         -----
-        *Stored contributions* (no contribution function, no reference
-        point: :class:`~jointfit_core.estimator.OnlineJoint`'s sums) in a
-        frame or time window: the block is replayed exactly. The frames that
-        leave at each step, the shadow rebuild's schedule (which frames it
-        adds, removes and rebuilds at each step, and the steps at which it
-        replaces the live sums) and the ring's growth are worked out with
-        integer arithmetic over the block; then the live sums after the last
-        replacement, and the shadow, are each one sequential
-        ``numpy.add.reduce`` (row after row, as :meth:`push` adds them) of
-        their start value and the rows added and subtracted in that order.
-        The sums, the shadow, the ring and the counters are therefore
-        bit-for-bit those of the sequential pushes, at a cost of
-        O(M) numpy work and O(cycles) Python steps. Time windows need
-        non-decreasing stamps for this (the usual case: the estimators drop
-        frames whose stamp does not increase); otherwise, with a
-        contribution function or a reference point, and for contributions
-        of length 1, the rows are pushed one by one.
-
-        *Exponential forgetting* with stored contributions: the block is
-        applied in closed form, ``sums <- w_old sums + sum_k w_k c_k`` with
-        ``w_k`` the product of the decays after frame k (``exp`` of the sum
-        of their exponents); this equals the sequential recursion up to
-        rounding (relative differences of a few ulp per frame of the
-        half-life, not bit-for-bit).
+        The block is added at once when the records are the contributions
+        themselves (no contribution function, no reference point:
+        :class:`~jointfit_core.estimator.OnlineJoint`'s sums), except, in a
+        frame or time window, contributions of length 1 and time windows
+        whose stamps ever decreased (the estimators drop frames whose stamp
+        does not increase); then the rows are pushed one by one. A frame or
+        time window replays the block
+        exactly (:class:`~jointfit_core.ring_replay.RingBlockReplay`): the
+        sums, the shadow, the ring and the counters are bit-for-bit those of
+        the sequential pushes, at a cost of O(M) numpy work and O(cycles)
+        Python steps. Exponential forgetting applies it in closed form
+        (:meth:`ForgettingSums.block_weights
+        <jointfit_core.forgetting_sums.ForgettingSums.block_weights>`), equal
+        to the sequential recursion up to rounding (relative differences of a
+        few ulp per frame of the half-life, not bit-for-bit).
         """
         recs = np.asarray(records, dtype=np.float64)
         if recs.ndim != 2 or recs.shape[1] != self.record_size:
@@ -255,7 +255,7 @@ class SlidingSums:
         if m == 0:
             return
         # (a single-column reduce would be summed pairwise by numpy, not row after row)
-        vectorised = self._contrib is None and self._store_contrib and (self.spec.exponential or self.n_sums > 1)
+        vectorised = self._stores_contributions() and (self.spec.exponential or self.n_sums > 1)
         if vectorised and st is not None and self.spec.seconds is not None:
             ordered = bool(np.all(st[1:] >= st[:-1])) and bool(np.isfinite(st).all())
             if self.last_stamp is not None:
@@ -266,14 +266,20 @@ class SlidingSums:
                 self.push(recs[k], None if st is None else float(st[k]))
             return
         if self.n_pushed == 0 and self._first_ref is not None:
-            self.ref = np.asarray(self._first_ref(recs[0]), dtype=np.float64)
-        if self.spec.exponential:
-            self._push_many_decay(recs, st)
+            self._window_sums.ref = np.asarray(self._first_ref(recs[0]), dtype=np.float64)
+        if isinstance(self._window_sums, ForgettingSums):
+            self._window_sums.push_block(recs, st, self.n_pushed, self.last_stamp)
         else:
-            self._push_many_ring(recs, st)
+            self._window_sums.push_block(recs, st)
         self.n_pushed += m
         if st is not None:
             self.last_stamp = float(st[-1])
+
+    def _stores_contributions(self) -> bool:
+        """Whether the records pushed are the contributions themselves and never change (no contribution function, no reference point)."""
+        if self._contrib is not None:
+            return False
+        return isinstance(self._window_sums, ForgettingSums) or self._window_sums.store_contrib
 
     def push_weighted_sum(self, total: FloatArray, w_old: float, m: int, stamps: FloatArray | None) -> None:
         """Exponential forgetting: add a block of ``m`` frames given as its weighted sum.
@@ -289,14 +295,15 @@ class SlidingSums:
         InputError
             The sums are of another kind, or ``total`` has the wrong shape.
         """
-        if not (self.spec.exponential and self._contrib is None and self._store_contrib and not self._count_index.size):
+        window = self._window_sums
+        if not (isinstance(window, ForgettingSums) and self._stores_contributions() and not self._count_index.size):
             raise InputError("push_weighted_sum: only for exponential forgetting of stored contributions without counts")
         tot = np.asarray(total, dtype=np.float64)
         if tot.shape != (self.n_sums,):
             raise InputError(f"total: expected shape ({self.n_sums},), got shape {tot.shape}")
         if m <= 0:
             return
-        self.sums = w_old * self.sums + tot
+        window.add_weighted_sum(tot, w_old)
         self.n_pushed += m
         if stamps is not None:
             self.last_stamp = float(stamps[-1])
@@ -305,214 +312,46 @@ class SlidingSums:
         """Exponential forgetting of a block of ``m`` frames: each frame's weight after the block, and the old sums'.
 
         Returns ``(w, w_old)``, ``w`` shape (m,): the product of the decays applied after each
-        frame, and the decay of the sums before the block (see :meth:`push_many`). ``stamps``
-        (m,) are needed by time half-lives.
+        frame, and the decay of the sums before the block
+        (:meth:`ForgettingSums.block_weights <jointfit_core.forgetting_sums.ForgettingSums.block_weights>`).
+        ``stamps`` (m,) are needed by time half-lives.
         """
-        if self.spec.half_life_s is not None:
-            st = stamps
-            assert st is not None and (self.last_stamp is not None or self.n_pushed == 0)
-            prev = np.empty(m)
-            prev[0] = st[0] if self.n_pushed == 0 else self.last_stamp
-            prev[1:] = st[:-1]
-            steps = np.maximum(st - prev, 0.0)
-        else:
-            steps = np.ones(m)
-        if self.n_pushed == 0:
-            steps[0] = 0.0  # the first frame ever finds nothing to decay
-        expo = self._log_decay * steps
-        # after[k]: exponent of the decays applied after frame k (frames k+1 .. m-1)
-        after = np.zeros(m)
-        after[:-1] = np.cumsum(expo[::-1])[::-1][1:]
-        return np.exp(after), float(np.exp(after[0] + expo[0]))
+        assert isinstance(self._window_sums, ForgettingSums)
+        return self._window_sums.block_weights(m, stamps, self.n_pushed, self.last_stamp)
 
-    def _push_many_decay(self, c: FloatArray, st: FloatArray | None) -> None:
-        """Exponential forgetting of a block of contributions, in closed form (see :meth:`push_many`)."""
-        m = c.shape[0]
-        w, w_old = self.block_weights(m, st)
-        self.sums = w_old * self.sums + w @ c
-        if self._count_index.size:
-            self._counts_sq = w_old * w_old * self._counts_sq + (w * w) @ (c[:, self._count_index] ** 2)
-
-    def _push_many_ring(self, c: FloatArray, st: FloatArray | None) -> None:
-        """Exact replay of :meth:`_push_contrib` over a block (see :meth:`push_many`; :mod:`~jointfit_core.ring_replay`)."""
-        replay = RingBlockReplay(
-            c, st, self.spec, self._lo, self._hi, self._rec, self._stamp, self._max_frames, self._ring_stamp_segments()
-        )
-        # the sums first: they read the ring as it was before the block, which stored_ring then overwrites
-        state = (self.sums, self._shadow, self._shadow_active, self._shadow_next, self._shadow_end)
-        self.sums, self._shadow, self._shadow_active, self._shadow_next, self._shadow_end = replay.sums_and_shadow(state)
-        self._rec, self._stamp, self._lo, self._hi = replay.stored_ring()
-
-    def _ring_stamp_segments(self) -> list[FloatArray]:
-        """The window's stamps as (at most two) contiguous pieces of the ring, oldest first."""
-        cap = self._rec.shape[0]
-        if self._hi <= self._lo or cap == 0:
-            return []
-        a, b = self._lo % cap, self._hi % cap
-        if a < b:
-            return [self._stamp[a:b]]
-        return [self._stamp[a:], self._stamp[:b]]
-
-    def _push_decay(self, record: FloatArray, stamp: float | None) -> None:
-        if self.n_pushed > 0:
-            if self.spec.half_life_s is not None:
-                assert stamp is not None and self.last_stamp is not None  # checked in push
-                steps = max(float(stamp) - self.last_stamp, 0.0)
-            else:
-                steps = 1.0
-            decay = float(np.exp(self._log_decay * steps))
-            self.sums *= decay
-            self._counts_sq *= decay * decay
-        c = record if self._contrib is None else self._contrib(record[None, :], self.ref[None, :])[0]
-        self.sums += c
-        self._counts_sq += c[self._count_index] ** 2
-        if self._ref_of is not None and self._shift is not None and self.n_pushed % _REREF_EVERY == _REREF_EVERY - 1:
-            new_ref = self._ref_of(self.sums, self.ref)
-            if new_ref is not None:
-                self.sums = self._shift(self.sums, self.ref, new_ref)
-                self.ref = new_ref
-
-    def _grow(self) -> None:
-        cap = self._rec.shape[0]
-        new_cap = min(2 * cap, self._max_frames)
-        idx = np.arange(self._lo, self._hi) % cap
-        rec = np.empty((new_cap, self._width))
-        stamp = np.empty(new_cap)
-        rec[np.arange(self._lo, self._hi) % new_cap] = self._rec[idx]
-        stamp[np.arange(self._lo, self._hi) % new_cap] = self._stamp[idx]
-        self._rec, self._stamp = rec, stamp
-
-    def _push_ring(self, record: FloatArray, stamp: float | None) -> None:
-        # Frames that leave: the oldest for a frame window, the stale ones for a time window.
-        lo, hi = self._lo, self._hi
-        cap = self._rec.shape[0]
-        new_lo = lo
-        if self.spec.frames is not None:
-            if hi - lo >= self.spec.frames:
-                new_lo = lo + 1
-        else:
-            new_lo = self._time_lo(float(stamp))  # type: ignore[arg-type]
-            cap = self._rec.shape[0]
-        leaving = [i % cap for i in range(lo, new_lo)]
-        if self._store_contrib:
-            c_new = record if self._contrib is None else self._contrib(record[None, :], self.ref[None, :])[0]
-            self._push_contrib(c_new, stamp, leaving, new_lo, cap)
-            return
-
-        # One block of rows: new and leaving frames about the live reference, then the
-        # shadow's rows (new, leaving frames it already holds, one rebuilt frame) about its own.
-        inside: list[int] = []
-        chunk: list[int] = []
-        if self._shadow_active:
-            inside = self._shadow_leaving(lo, new_lo, cap)
-            self._shadow_next = max(self._shadow_next, new_lo)
-            if self._shadow_next < self._shadow_end:
-                chunk = [self._shadow_next % cap]
-                self._shadow_next += 1
-        n_live = 1 + len(leaving)
-        n_rows = n_live + ((1 + len(inside) + len(chunk)) if self._shadow_active else 0)
-        block = np.empty((n_rows, self.record_size))
-        refs = np.empty((n_rows, 3))
-        block[0] = record
-        block[1:n_live] = self._rec[leaving]
-        refs[:n_live] = self.ref
-        signs = np.ones(n_rows)
-        signs[1:n_live] = -1.0
-        if self._shadow_active:
-            block[n_live] = record
-            block[n_live + 1 : n_live + 1 + len(inside)] = self._rec[inside]
-            block[n_rows - len(chunk) :] = self._rec[chunk]
-            refs[n_live:] = self._shadow_ref
-            signs[n_live + 1 : n_live + 1 + len(inside)] = -1.0
-        assert self._contrib is not None  # records with a reference point always have a contribution function
-        c = self._contrib(block, refs)
-        self.sums += signs[:n_live] @ c[:n_live]
-        if self._shadow_active:
-            self._shadow += signs[n_live:] @ c[n_live:]
-
-        # Store the new record.
-        slot = hi % cap
-        self._rec[slot] = record
-        self._stamp[slot] = np.nan if stamp is None else float(stamp)
-        self._lo = new_lo
-        self._hi = hi + 1
-
-        if self._shadow_active and self._shadow_next >= self._shadow_end:
-            self.sums = self._shadow
-            self.ref = self._shadow_ref
-            self._shadow_active = False
-        if not self._shadow_active:
-            self._start_shadow()
+    # ------------------------------------------------------------------ the ring's state, as tests and bench/vector_core.py read it
 
     @property
-    def counts_sq(self) -> FloatArray:
-        """Sums of squared weights of the count entries (equal to the counts in ring modes)."""
-        if self.spec.exponential:
-            return self._counts_sq
-        out: FloatArray = self.sums[self._count_index]
-        return out
+    def _shadow(self) -> FloatArray:
+        """The drift control's rebuilt sums, shape (L,) (:attr:`ShadowSums.sums <jointfit_core.shadow_sums.ShadowSums.sums>`)."""
+        return self._ring_window("_shadow").shadow.sums
 
-    def _time_lo(self, stamp: float) -> int:
-        """Oldest frame kept by a time window after adding a frame at ``stamp`` (grows the ring if needed)."""
-        lo, hi = self._lo, self._hi
-        cap = self._rec.shape[0]
-        horizon = stamp - float(self.spec.seconds)  # type: ignore[arg-type]
-        new_lo = lo
-        while new_lo < hi and self._stamp[new_lo % cap] <= horizon:
-            new_lo += 1
-        if hi - new_lo >= cap:
-            if cap < self._max_frames:
-                self._grow()
-            else:
-                new_lo = hi - cap + 1
-        return new_lo
+    @property
+    def _shadow_active(self) -> bool:
+        """Whether a rebuild is under way (:attr:`ShadowSums.active <jointfit_core.shadow_sums.ShadowSums.active>`)."""
+        return self._ring_window("_shadow_active").shadow.active
 
-    def _push_contrib(
-        self, c_new: FloatArray, stamp: float | None, leaving: list[int], new_lo: int, cap: int
-    ) -> None:
-        """Ring of stored contributions: subtract and re-add them, never recompute."""
-        lo, hi = self._lo, self._hi
-        rec = self._rec
-        self.sums += c_new
-        if len(leaving) == 1:
-            self.sums -= rec[leaving[0]]
-        elif leaving:
-            self.sums -= rec[leaving].sum(axis=0)
-        if self._shadow_active:
-            self._shadow += c_new
-            inside = self._shadow_leaving(lo, new_lo, cap)
-            if len(inside) == 1:
-                self._shadow -= rec[inside[0]]
-            elif inside:
-                self._shadow -= rec[inside].sum(axis=0)
-            self._shadow_next = max(self._shadow_next, new_lo)
-            if self._shadow_next < self._shadow_end:
-                self._shadow += rec[self._shadow_next % cap]
-                self._shadow_next += 1
-        slot = hi % cap
-        rec[slot] = c_new  # a copy: the caller may reuse its buffer
-        self._stamp[slot] = np.nan if stamp is None else float(stamp)
-        self._lo = new_lo
-        self._hi = hi + 1
-        if self._shadow_active and self._shadow_next >= self._shadow_end:
-            self.sums = self._shadow
-            self._shadow_active = False
-        if not self._shadow_active:
-            self._start_shadow()
+    @property
+    def _shadow_next(self) -> int:
+        """The next frame the rebuild adds (:attr:`ShadowSums.next <jointfit_core.shadow_sums.ShadowSums.next>`)."""
+        return self._ring_window("_shadow_next").shadow.next
 
-    def _shadow_leaving(self, lo: int, new_lo: int, cap: int) -> list[int]:
-        """Ring slots of the leaving frames [lo, new_lo) that the shadow already holds.
+    @property
+    def _shadow_end(self) -> int:
+        """One past the last frame the rebuild adds (:attr:`ShadowSums.end <jointfit_core.shadow_sums.ShadowSums.end>`)."""
+        return self._ring_window("_shadow_end").shadow.end
 
-        Those are the rebuilt ones (below ``_shadow_next``) and the ones added since the rebuild
-        began (from ``_shadow_end`` on; a time window can drop those too when stamps jump).
-        """
-        return [i % cap for i in range(lo, new_lo) if i < self._shadow_next or i >= self._shadow_end]
+    @property
+    def _rec(self) -> FloatArray:
+        """The ring's rows, shape (capacity, R or L) (:attr:`RecordRing.rows <jointfit_core.record_ring.RecordRing.rows>`)."""
+        return self._ring_window("_rec").ring.rows
 
-    def _start_shadow(self) -> None:
-        """Begin rebuilding the window's sums from the ring, about a fresh reference point."""
-        new_ref = self._ref_of(self.sums, self.ref) if self._ref_of is not None else None
-        self._shadow_ref = self.ref.copy() if new_ref is None else np.asarray(new_ref, dtype=np.float64)
-        self._shadow = np.zeros(self.n_sums)
-        self._shadow_next = self._lo
-        self._shadow_end = self._hi
-        self._shadow_active = True
+    @property
+    def _lo(self) -> int:
+        """Absolute index of the oldest frame in the window."""
+        return self._ring_window("_lo").ring.lo
+
+    @property
+    def _hi(self) -> int:
+        """One past the newest frame's absolute index."""
+        return self._ring_window("_hi").ring.hi
