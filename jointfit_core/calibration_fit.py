@@ -13,6 +13,24 @@ per degree of freedom, rises from the calibration's noise to about the move
 :class:`CalibrationFit` keeps each segment's recent residual level while
 frozen and says when it is beyond :data:`MISFIT_RMS_RATIO` times the
 calibration's noise: the joint then withholds its outputs and says why.
+
+A whole cluster taken off and put back elsewhere on its bone (a plate
+re-strapped a few cm or degrees away, another subject or the other side with
+plates of the same shape) keeps its shape, so its residual stays at the
+noise, yet the saved joint, fixed in the old template frame, is no longer
+where the bone's joint is: measured (hunt of the calibration reuse, hunt-calib
+B1), a hip whose pelvis plate was put back 20 mm away was published 20 mm off
+with an sd of 1.9 mm (mean e/3 41), a knee whose thigh plate turned 5 deg
+4 mm and several degrees off (e/2 136), status OK "frozen". Such a move
+breaks the joint itself: the centre (or axis) carried by the parent and the
+one carried by the child no longer meet, by about the move, in every frame
+(:func:`~jointfit_core.joint_gate.joint_residuals`; the joint test of
+:mod:`jointfit_core.joint_gate` scores only sudden changes of it, and a move
+made between two sessions is none). :class:`CalibrationFit` therefore also
+keeps the recent mean of the joint residual while frozen and compares it with
+what the calibration's covariance (and the residual's own scatter) allows:
+beyond :data:`JOINT_MISFIT_RATIO` (a chi-square per degree of freedom) the
+outputs are withheld in the same way.
 """
 
 from __future__ import annotations
@@ -23,10 +41,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from .hinge_from_sums import PoseSumsAxis
+from .joint_gate import JointResidual, joint_residuals
+from .segments import PoseSumsCentre
+
 if TYPE_CHECKING:
     from .segment_pair import PairSet
 
-__all__ = ["MISFIT_FRAMES", "MISFIT_RMS_RATIO", "CalibrationFit"]
+__all__ = ["JOINT_MISFIT_FRAMES", "JOINT_MISFIT_RATIO", "MISFIT_FRAMES", "MISFIT_RMS_RATIO", "CalibrationFit"]
 
 FloatArray = NDArray[np.float64]
 
@@ -37,6 +59,17 @@ MISFIT_FRAMES = 50
 #: 1.2), skin 3 (the calibration's noise is the pooled residual, the cluster's deformation included, which
 #: grows with the joint angles).
 MISFIT_RMS_RATIO = {"rigid": 2.0, "skin": 3.0}
+#: Frames (both segments posed, while frozen) the joint residual's mean is taken over (exponentially), and
+#: needs before it is judged.
+JOINT_MISFIT_FRAMES = 100
+#: The recent mean joint residual's chi-square per degree of freedom, against the calibration's covariance
+#: of it plus the residual's per-frame scatter, beyond which the frozen calibration no longer fits the joint:
+#: rigid 4 (2 sd), skin (either segment) 9. That covariance holds more than a published output's does (the
+#: estimate's, and the frame's pose noise at the joint, the child's too), so these are loose limits: on rigid
+#: rigs an honest reuse stays at 0.001-0.014 and a parent plate moved 10 mm, published at e/k 5-19, reads
+#: 2.4-7.4; on skin (3-10 mm of artefact, the markers re-applied) honest reuses read 0.005-1.06, and a
+#: cluster re-applied 20 mm away, whose outputs the skin covariance still covers (e/k 0.03-4.9), up to 7.6.
+JOINT_MISFIT_RATIO = {"rigid": 4.0, "skin": 9.0}
 
 
 class CalibrationFit:
@@ -55,6 +88,7 @@ class CalibrationFit:
 
     def __init__(self, attachment: tuple[str, str]) -> None:
         self._ratio = tuple(MISFIT_RMS_RATIO[a] for a in attachment)
+        self._joint_limit = JOINT_MISFIT_RATIO["skin" if "skin" in attachment else "rigid"]
         self.restart()
 
     def restart(self) -> None:
@@ -62,6 +96,15 @@ class CalibrationFit:
         self._level = [0.0, 0.0]
         self._count = [0, 0]
         self._misfit = ["", ""]
+        self._joint_misfit = ""
+        self._solution: object = None
+        self._residual: JointResidual | None = None
+        self._joint_count = 0
+        self._e_mean = np.zeros(0)
+        self._e_sq = np.zeros((0, 0))
+        self._q_mean = np.zeros((3, 3))
+        #: The latest joint statistic (chi-square per degree of freedom; NaN: not judged yet).
+        self.joint_ratio = float("nan")
         self.problem = ""
 
     def add(self, segment: int, ss: float, dof: float, sigma: float) -> None:
@@ -85,7 +128,86 @@ class CalibrationFit:
             )
         elif self._count[k] >= MISFIT_FRAMES:
             self._misfit[k] = ""
-        self.problem = self._misfit[0] or self._misfit[1]
+        self.problem = self._misfit[0] or self._misfit[1] or self._joint_misfit
+
+    def add_joint(self, z: FloatArray, solution: PoseSumsCentre | PoseSumsAxis | None, length: float) -> None:
+        """One frame with both segments posed: its relative pose ``z`` (3, 4) = ``[Q | t]`` under ``solution``.
+
+        ``length``: the templates' length scale (input units, the hinge's turn in length units).
+        Keeps the recent mean of the joint residual (:func:`~jointfit_core.joint_gate.joint_residuals`)
+        and of ``Q``, and every :data:`JOINT_MISFIT_FRAMES` // 10 frames judges the mean against its
+        covariance under the calibration: the estimate's (``J cov J^T``, ``J`` the mean residual's
+        derivative by the parent's and the child's estimate) plus the residual's recent per-frame
+        covariance (the frames' pose noise at the joint; on skin markers the artefact's drift).
+        """
+        if solution is not self._solution:
+            self._solution = solution
+            self._residual = None
+            self._joint_count = 0
+            self._joint_misfit = ""
+            ok = solution is not None and solution.identifiable and math.isfinite(length) and length > 0.0
+            if ok:
+                assert solution is not None
+                self._residual = JointResidual.of(solution, length)
+        res = self._residual
+        if res is None:
+            return
+        e = joint_residuals(z[None], res)[0]
+        if not np.isfinite(e).all():
+            return
+        self._joint_count += 1
+        n = self._joint_count
+        w = 1.0 / min(n, JOINT_MISFIT_FRAMES)
+        if n == 1:
+            self._e_mean = e.copy()
+            self._e_sq = np.outer(e, e)
+            self._q_mean = z[:, :3].copy()
+        else:
+            self._e_mean += w * (e - self._e_mean)
+            self._e_sq += w * (np.outer(e, e) - self._e_sq)
+            self._q_mean += w * (z[:, :3] - self._q_mean)
+        if n < JOINT_MISFIT_FRAMES or n % max(JOINT_MISFIT_FRAMES // 10, 1):
+            return
+        self.joint_ratio = self._joint_statistic(res)
+        if self.joint_ratio > self._joint_limit:
+            what = "centre" if res.kind == "ball" else "axis"
+            self._joint_misfit = (
+                f"the frozen calibration no longer fits the joint: the {what} carried by the parent and by the "
+                f"child disagree by {float(np.linalg.norm(self._e_mean)):.3g} (input units) over the last "
+                f"{JOINT_MISFIT_FRAMES} frames, {math.sqrt(self.joint_ratio):.3g} sd of what the calibration "
+                "allows: a cluster moved on its bone (taken off and put back), or another subject's or side's "
+                "calibration; outputs withheld: put the cluster back, or reset the joint and calibrate again"
+            )
+        else:
+            self._joint_misfit = ""
+        self.problem = self._misfit[0] or self._misfit[1] or self._joint_misfit
+
+    def _joint_statistic(self, res: JointResidual) -> float:
+        """The recent mean joint residual's chi-square per degree of freedom (the largest of its blocks)."""
+        sol = self._solution
+        m = self._e_mean
+        scatter = self._e_sq - np.outer(m, m)  # the residual's per-frame covariance
+        Qm = self._q_mean
+        if isinstance(sol, PoseSumsAxis):
+            u = res.u
+            P = np.eye(3) - np.outer(u, u)
+            # the turn across the axis only: along it, ``Q a_c - a_p`` is of second order (the pose noise's
+            # shrinking of ``Q a_c``, a bias with next to no scatter, that no direction error causes)
+            turn = res.length**2 * P @ (Qm @ sol.cov_direction_child @ Qm.T + sol.cov_direction_parent) @ P
+            across = P @ (Qm @ sol.cov_point_child @ Qm.T + sol.cov_point_parent) @ P
+            blocks = [(slice(0, 3), turn, 2), (slice(3, 6), across, 2)]
+        else:
+            assert isinstance(sol, PoseSumsCentre)
+            J = np.concatenate([-np.eye(3), Qm], axis=1)
+            blocks = [(slice(0, 3), J @ sol.cov @ J.T, 3)]
+            P = np.eye(3)
+        worst = 0.0
+        for sl, cov, dof in blocks:
+            C = P @ (cov + scatter[sl, sl]) @ P
+            v = P @ m[sl]
+            stat = float(v @ np.linalg.pinv(C, rcond=1e-10, hermitian=True) @ v) / dof
+            worst = max(worst, stat)
+        return worst
 
     def add_frame(self, ss: FloatArray, ps: PairSet, sigma: tuple[float, float]) -> bool:
         """One frame's posed segments (:meth:`add` of each); whether the markers no longer fit (:attr:`problem`).
