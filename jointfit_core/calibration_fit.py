@@ -105,7 +105,35 @@ class CalibrationFit:
         self._q_mean = np.zeros((3, 3))
         #: The latest joint statistic (chi-square per degree of freedom; NaN: not judged yet).
         self.joint_ratio = float("nan")
+        self._frames = 0
+        self._hold = False
         self.problem = ""
+
+    def hold_until_judged(self) -> None:
+        """A calibration loaded from a file: its outputs are withheld until the checks have judged it.
+
+        That is :data:`JOINT_MISFIT_FRAMES` frames with a posed segment (1 s at 100 Hz; the residual check
+        needs :data:`MISFIT_FRAMES` of them). A calibration frozen in this session was fitted to these
+        markers; a loaded one may be another session's, whose clusters were put back elsewhere, or another
+        subject's (the hunt of the calibration reuse: the first second after a load was published 20 to
+        143 mm off at an sd of 1.9 mm before the checks could say so).
+        """
+        self._hold = True
+        self._update_problem()
+
+    @property
+    def holding(self) -> bool:
+        """A loaded calibration not judged yet, and nothing found wrong so far (:meth:`hold_until_judged`)."""
+        return self._hold and not (self._misfit[0] or self._misfit[1] or self._joint_misfit)
+
+    def _update_problem(self) -> None:
+        held = ""
+        if self._hold:
+            held = (
+                f"checking the loaded calibration against these markers ({self._frames} of {JOINT_MISFIT_FRAMES} "
+                "frames): outputs held until it is judged"
+            )
+        self.problem = self._misfit[0] or self._misfit[1] or self._joint_misfit or held
 
     def add(self, segment: int, ss: float, dof: float, sigma: float) -> None:
         """One posed frame of ``segment`` (0 parent, 1 child): its residual sum of squares over ``dof`` degrees of freedom.
@@ -128,7 +156,7 @@ class CalibrationFit:
             )
         elif self._count[k] >= MISFIT_FRAMES:
             self._misfit[k] = ""
-        self.problem = self._misfit[0] or self._misfit[1] or self._joint_misfit
+        self._update_problem()
 
     def add_joint(self, z: FloatArray, solution: PoseSumsCentre | PoseSumsAxis | None, length: float) -> None:
         """One frame with both segments posed: its relative pose ``z`` (3, 4) = ``[Q | t]`` under ``solution``.
@@ -180,7 +208,7 @@ class CalibrationFit:
             )
         else:
             self._joint_misfit = ""
-        self.problem = self._misfit[0] or self._misfit[1] or self._joint_misfit
+        self._update_problem()
 
     def _joint_statistic(self, res: JointResidual) -> float:
         """The recent mean joint residual's chi-square per degree of freedom (the largest of its blocks)."""
@@ -224,4 +252,8 @@ class CalibrationFit:
         for k, vs in enumerate((ps.parent, ps.child)):
             if vs is not None:
                 self.add(k, float(ss[k]), float(vs.dof), sigma[k])
+        if self._hold:
+            self._frames += 1
+            self._hold = self._frames < JOINT_MISFIT_FRAMES
+            self._update_problem()
         return bool(self.problem)

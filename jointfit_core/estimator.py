@@ -379,7 +379,10 @@ class OnlineJoint(JointSegments):
             z[:, 3] = R[0].T @ (d[1] - d[0])
             self._fit.add_joint(z, self._solution, self.length_scale)
         if self._frozen and self._fit.add_frame(ss, ps, self._sigma):  # the markers off the calibration's templates
-            self._drop("markers_off_calibration")
+            if not self._fit.holding:
+                self._drop("markers_off_calibration")
+            elif ps.parent is not None:  # (a frame without a parent pose has no output to hold: counted above)
+                self._drop("calibration_being_checked")
             self.frame_poses = None
             return None
         both = ps.parent is not None and ps.child is not None
@@ -401,6 +404,16 @@ class OnlineJoint(JointSegments):
     def calibration_problem(self) -> str:
         """Empty while a frozen joint's markers fit its calibration; else why its outputs are withheld."""
         return self._fit.problem if self._frozen else ""
+
+    def hold_until_judged(self) -> None:
+        """A frozen calibration from another session: no output until its markers have been judged against it.
+
+        :meth:`CalibrationFit.hold_until_judged <jointfit_core.calibration_fit.CalibrationFit.hold_until_judged>`
+        (the first :data:`~jointfit_core.calibration_fit.JOINT_MISFIT_FRAMES` posed frames, counted as
+        ``dropped["calibration_being_checked"]``). The node calls it for a calibration file it loads;
+        :meth:`from_dict` alone publishes from the first frame (the same session's markers).
+        """
+        self._fit.hold_until_judged()
 
     def freeze(self) -> Any:
         """:meth:`JointEstimate.freeze <jointfit_core.joint_estimate.JointEstimate.freeze>`; the markers are judged against it from now."""

@@ -206,6 +206,7 @@ class JointCalibration:
             self.unloadable = True
             return None
         self.load_notes += _settings_differences(data, self.cfg)
+        est.hold_until_judged()  # another session's markers, perhaps put back elsewhere: judged before it publishes
         self.checking_layout = True  # until the live markers are compared with the templates
         self._layout_seen = []
         self.loaded_from = source

@@ -50,12 +50,19 @@ def _moved(motion: TwoSegmentMotion, shift_mm: tuple[float, float, float], turn_
     return dataclasses.replace(motion, template_parent=(x - c) @ R.T + c + np.asarray(shift_mm))
 
 
-def _session(saved: dict, motion: TwoSegmentMotion, truth: TwoSegmentMotion) -> tuple[list[float], OnlineJoint]:
-    """A later 10 s session with the saved calibration: e/k of every published output (k = 3 ball, 2 hinge point)."""
+def _session(
+    saved: dict, motion: TwoSegmentMotion, truth: TwoSegmentMotion, held: bool = False
+) -> tuple[list[float], OnlineJoint]:
+    """A later 10 s session with the saved calibration: e/k of every published output (k = 3 ball, 2 hinge point).
+
+    ``held``: as the node loads a calibration file (:meth:`OnlineJoint.hold_until_judged`).
+    """
     t = 200.0 + np.arange(round(10.0 * RATE)) / RATE
     yp, yc = _frames(motion, t, 7)
     centre = truth.centre_world_at(t) * 1e-3
     est = OnlineJoint.from_dict(saved)
+    if held:
+        est.hold_until_judged()
     e: list[float] = []
     for k in range(t.size):
         out = est.update(yp[k], yc[k], float(t[k]))
@@ -89,3 +96,19 @@ def test_the_same_markers_in_a_later_session_publish_honestly(kind: str) -> None
     assert est.calibration_problem == "" and len(e) >= 990
     assert float(np.mean(e)) < 2.0
     assert est._fit.joint_ratio < 0.1  # far inside the limit (4 rigid)
+
+
+@pytest.mark.parametrize(("kind", "shift", "turn"), [("ball", (20.0, 0.0, 0.0), 0.0), ("hinge", (0.0, 0.0, 0.0), 5.0)])
+def test_a_loaded_calibration_publishes_nothing_before_it_is_judged(kind: str, shift: tuple, turn: float) -> None:
+    """As the node loads a file: the first second is held too, so a moved cluster publishes nothing at all.
+
+    Without the hold the first JOINT_MISFIT_FRAMES frames went out (the hip 20 mm off at an sd of 1.9 mm).
+    """
+    motion = two_segment_motion(np.random.default_rng(3), kind=kind, offset=(2500.0, 3000.0, 900.0))
+    saved = _calibrated(motion)
+    e, est = _session(saved, _moved(motion, shift, turn), motion, held=True)
+    assert e == [], (len(e), float(np.median(e)))
+    assert est.dropped.get("calibration_being_checked") == JOINT_MISFIT_FRAMES - 1
+    assert "no longer fits the joint" in est.calibration_problem
+    e_same, est_same = _session(saved, motion, motion, held=True)
+    assert len(e_same) == 1000 - (JOINT_MISFIT_FRAMES - 1) and est_same.calibration_problem == ""

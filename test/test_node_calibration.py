@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from jointfit_core.calibration import fit_to_dict
+from jointfit_core.calibration_fit import JOINT_MISFIT_FRAMES
 from jointfit_core.errors import InputError
 from jointfit_core.node_calibration import (
     NODE_CALIBRATION_VERSION,
@@ -143,7 +144,7 @@ def test_a_chains_hip_centre_and_knee_axis_are_in_one_thigh_frame(calibrated: di
     assert np.abs(np.array(cal["template_parent"]) @ A.T + a - np.array(doc["segments"][thigh]["template"])).max() < 2e-3
 
 
-def test_round_trip_restores_every_joint_exactly_and_frozen_joints_publish_at_once(
+def test_round_trip_restores_every_joint_exactly_and_frozen_joints_publish_once_judged(
     calibrated: dict[str, Any], tmp_path: Path
 ) -> None:
     path = tmp_path / "subject.yaml"
@@ -162,11 +163,17 @@ def test_round_trip_restores_every_joint_exactly_and_frozen_joints_publish_at_on
             else:
                 assert a == b, name
         assert "calibration loaded from" in r.status().values
-    # the first frame after the restart: every joint publishes, where the joints before the restart would
-    _, raws = _raws(0.05, start=20.0)
-    restored = {o.runner.cfg.name: o.output for o in router.markers(raws[0])}
+    # after the restart each joint judges its calibration against the markers over its first JOINT_MISFIT_FRAMES
+    # posed frames (outputs held), then publishes exactly what the joints before the restart would
+    _, raws = _raws(1.3, start=20.0)
+    first: dict[str, int] = {}
+    for k, raw in enumerate(raws[:-1]):
+        for o in router.markers(raw):
+            first.setdefault(o.runner.cfg.name, k)
+    assert sorted(first) == sorted(before) and all(JOINT_MISFIT_FRAMES - 1 <= k < 110 for k in first.values()), first
+    restored = {o.runner.cfg.name: o.output for o in router.markers(raws[-1])}
     original = {o.runner.cfg.name: o.output
-                for o in MessageRouter(calibrated["runners"][0].node, calibrated["runners"]).markers(raws[0])}
+                for o in MessageRouter(calibrated["runners"][0].node, calibrated["runners"]).markers(raws[-1])}
     assert sorted(restored) == sorted(original) == sorted(before)
     for name, out in restored.items():
         np.testing.assert_allclose(out.position, original[name].position, rtol=0.0, atol=1e-12)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from jointfit_core.calibration_fit import JOINT_MISFIT_FRAMES
 from jointfit_core.errors import InputError, NotIdentifiableError
 from jointfit_core.estimator import solve_window
 from jointfit_core.synthetic import two_segment_motion
@@ -151,9 +152,14 @@ def test_runner_estimates_reports_and_saves(tmp_path: Any) -> None:
     assert runner.save() == str(path) and path.exists()
     assert "frozen" in runner.freeze(True)
 
-    # A new runner (a restarted node) loads the file and starts frozen, with outputs at once.
+    # A new runner (a restarted node) loads the file and starts frozen; its markers are judged against the
+    # calibration over the first JOINT_MISFIT_FRAMES frames (outputs held, the status says why), then it publishes.
     again = JointRunner(cfg.joints[0], cfg)
     assert again.estimator.frozen and again.loaded_from == str(path)
+    n = frames.shape[0]
+    held = [again.markers_frame(int(times[k] * 1e9), frames[k]) for k in range(n - 150, n - 150 + JOINT_MISFIT_FRAMES)]
+    assert all(o is None for o in held[:-1]) and held[-1] is not None  # judged at the last of them
+    assert again.estimator.dropped.get("calibration_being_checked") == JOINT_MISFIT_FRAMES - 1
     out2 = again.markers_frame(int(times[-1] * 1e9), frames[-1])
     assert out2 is not None and np.linalg.norm(out2.position - truth) < 5.0
     again.reset()
