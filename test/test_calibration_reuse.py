@@ -133,3 +133,42 @@ def test_a_loaded_calibration_is_held_until_the_joint_itself_is_judged(hidden: i
     e_same, est_same = _session(saved, motion, motion, held=True, child_hidden=hidden)
     assert len(e_same) == 1000 - hidden - (JOINT_MISFIT_FRAMES - 1) and est_same.calibration_problem == ""
     assert float(np.mean(e_same)) < 2.0
+
+
+@pytest.mark.parametrize(("kind", "thaw_at"), [("ball", 300), ("hinge", 300), ("hinge", 50)])
+def test_thawing_a_calibration_that_does_not_fit_estimates_anew_without_publishing_it(kind: str, thaw_at: int) -> None:
+    """``~/freeze false`` after a loaded calibration was withheld (or while it is still being checked).
+
+    The joint estimates anew from the live markers, so its outputs must come from that new estimate only.
+    Before (hunt-calib2 B), the withheld calibration was published again from the thaw until the first solve
+    of the new window: the node's knee whose thigh plate had been put back elsewhere went out about 20 mm off
+    at e/2 ~200 for 0.1 s, status OK "estimating".
+    """
+    motion = two_segment_motion(np.random.default_rng(3), kind=kind, offset=(2500.0, 3000.0, 900.0))
+    saved = _calibrated(motion)
+    moved = _moved(motion, (20.0, 0.0, 0.0), 5.0)
+    t = 200.0 + np.arange(round(20.0 * RATE)) / RATE
+    yp, yc = _frames(moved, t, 7)
+    centre = motion.centre_world_at(t) * 1e-3
+    est = OnlineJoint.from_dict(saved)
+    est.hold_until_judged()
+    e: list[tuple[int, float]] = []
+    for k in range(t.size):
+        if k == thaw_at:
+            assert est.calibration_problem
+            est.thaw()
+        out = est.update(yp[k], yc[k], float(t[k]))
+        if k > thaw_at and k % 10 == 0:
+            try:
+                est.estimate()
+            except ValueError:
+                pass
+        if out is None:
+            continue
+        err = out.position - centre[k]
+        if kind == "hinge":
+            assert out.direction is not None
+            err = err - (err @ out.direction) * out.direction
+        e.append((k, float(err @ np.linalg.pinv(out.cov, rcond=1e-12) @ err) / (3.0 if kind == "ball" else 2.0)))
+    assert e and all(k > thaw_at + 10 for k, _ in e), e[:3]  # nothing before the new window's first solve
+    assert max(v for _, v in e) < 25.0 and float(np.mean([v for _, v in e])) < 2.0
