@@ -112,8 +112,9 @@ class CalibrationFit:
     def hold_until_judged(self) -> None:
         """A calibration loaded from a file: its outputs are withheld until the checks have judged it.
 
-        That is :data:`JOINT_MISFIT_FRAMES` frames with a posed segment (1 s at 100 Hz; the residual check
-        needs :data:`MISFIT_FRAMES` of them). A calibration frozen in this session was fitted to these
+        That is :data:`JOINT_MISFIT_FRAMES` frames with both segments posed (1 s at 100 Hz; the residual check
+        needs :data:`MISFIT_FRAMES` of them; a calibration that is not identifiable, whose joint residual is not
+        judged, :data:`JOINT_MISFIT_FRAMES` frames with a posed segment). A calibration frozen in this session was fitted to these
         markers; a loaded one may be another session's, whose clusters were put back elsewhere, or another
         subject's (the hunt of the calibration reuse: the first second after a load was published 20 to
         143 mm off at an sd of 1.9 mm before the checks could say so).
@@ -130,8 +131,8 @@ class CalibrationFit:
         held = ""
         if self._hold:
             held = (
-                f"checking the loaded calibration against these markers ({self._frames} of {JOINT_MISFIT_FRAMES} "
-                "frames): outputs held until it is judged"
+                f"checking the loaded calibration against these markers ({self._joint_count} of "
+                f"{JOINT_MISFIT_FRAMES} frames with both segments posed): outputs held until it is judged"
             )
         self.problem = self._misfit[0] or self._misfit[1] or self._joint_misfit or held
 
@@ -254,6 +255,18 @@ class CalibrationFit:
                 self.add(k, float(ss[k]), float(vs.dof), sigma[k])
         if self._hold:
             self._frames += 1
-            self._hold = self._frames < JOINT_MISFIT_FRAMES
+            self._hold = self._frames < JOINT_MISFIT_FRAMES or self._joint_unjudged()
             self._update_problem()
         return bool(self.problem)
+
+    def _joint_unjudged(self) -> bool:
+        """The joint residual is still to be judged: no frame with both segments posed yet, or fewer than
+        :data:`JOINT_MISFIT_FRAMES` of them under a calibration that can be judged (an identifiable one).
+
+        A frame with the parent posed alone counts toward :data:`MISFIT_FRAMES` but cannot judge the joint;
+        counting such frames toward the hold (hunt-calib2 A) let a hip whose pelvis plate was put back 20 mm
+        away out 20 mm off at e/3 ~550, status OK, for as many frames as the thigh had been hidden.
+        """
+        if self._solution is None:
+            return True
+        return self._residual is not None and self._joint_count < JOINT_MISFIT_FRAMES

@@ -422,9 +422,18 @@ class OnlineJoint(JointSegments):
         return sol
 
     def thaw(self) -> None:
-        """:meth:`JointEstimate.thaw <jointfit_core.joint_estimate.JointEstimate.thaw>`; a later freeze judges afresh."""
+        """:meth:`JointEstimate.thaw <jointfit_core.joint_estimate.JointEstimate.thaw>`; a later freeze judges afresh.
+
+        A calibration whose outputs were withheld (its markers no longer fit it, or a loaded one not judged yet)
+        is forgotten: the joint publishes again once its window has been solved. Kept, it went out again from
+        the thaw to the first solve (hunt-calib2 B: a knee whose thigh plate was put back elsewhere, ~20 mm off
+        at e/2 ~200, status "estimating"), judged by nothing any more.
+        """
+        withheld = bool(self._fit.problem)
         super().thaw()
         self._fit.restart()
+        if withheld:
+            self._forget_estimate()
 
     # ------------------------------------------------------------------ calibration
 

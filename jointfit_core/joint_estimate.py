@@ -457,3 +457,10 @@ class JointEstimate:
     def thaw(self) -> None:
         """Resume updating the statistics (the window holds the frames from before freezing)."""
         self._frozen = False
+
+    def _forget_estimate(self) -> None:
+        """Drop the estimate (not the window): none until the window is solved again."""
+        self._solution = None
+        self._statistical = None
+        self._solved_version = 0
+        self._installed()

@@ -51,14 +51,16 @@ def _moved(motion: TwoSegmentMotion, shift_mm: tuple[float, float, float], turn_
 
 
 def _session(
-    saved: dict, motion: TwoSegmentMotion, truth: TwoSegmentMotion, held: bool = False
+    saved: dict, motion: TwoSegmentMotion, truth: TwoSegmentMotion, held: bool = False, child_hidden: int = 0
 ) -> tuple[list[float], OnlineJoint]:
     """A later 10 s session with the saved calibration: e/k of every published output (k = 3 ball, 2 hinge point).
 
     ``held``: as the node loads a calibration file (:meth:`OnlineJoint.hold_until_judged`).
+    ``child_hidden``: the child's markers are all occluded in the first that many frames.
     """
     t = 200.0 + np.arange(round(10.0 * RATE)) / RATE
     yp, yc = _frames(motion, t, 7)
+    yc[:child_hidden] = np.nan
     centre = truth.centre_world_at(t) * 1e-3
     est = OnlineJoint.from_dict(saved)
     if held:
@@ -112,3 +114,61 @@ def test_a_loaded_calibration_publishes_nothing_before_it_is_judged(kind: str, s
     assert "no longer fits the joint" in est.calibration_problem
     e_same, est_same = _session(saved, motion, motion, held=True)
     assert len(e_same) == 1000 - (JOINT_MISFIT_FRAMES - 1) and est_same.calibration_problem == ""
+
+
+@pytest.mark.parametrize("hidden", [30, 300])
+def test_a_loaded_calibration_is_held_until_the_joint_itself_is_judged(hidden: int) -> None:
+    """Frames where only the parent is posed cannot judge the joint: the hold lasts until 100 frames with both posed.
+
+    Before (hunt-calib2 A), the hold counted frames with either segment posed: with the child hidden for the first
+    0.3 s (3 s), a hip whose pelvis plate was put back 20 mm away was published 30 (300) times, 20 mm off at
+    e/3 ~550, with no warning, before the joint residual was first judged.
+    """
+    motion = two_segment_motion(np.random.default_rng(3), kind="ball", offset=(2500.0, 3000.0, 900.0))
+    saved = _calibrated(motion)
+    e, est = _session(saved, _moved(motion, (20.0, 0.0, 0.0), 0.0), motion, held=True, child_hidden=hidden)
+    assert e == [], (len(e), float(np.median(e)))
+    assert est.dropped.get("calibration_being_checked") == hidden + JOINT_MISFIT_FRAMES - 1
+    assert "no longer fits the joint" in est.calibration_problem
+    e_same, est_same = _session(saved, motion, motion, held=True, child_hidden=hidden)
+    assert len(e_same) == 1000 - hidden - (JOINT_MISFIT_FRAMES - 1) and est_same.calibration_problem == ""
+    assert float(np.mean(e_same)) < 2.0
+
+
+@pytest.mark.parametrize(("kind", "thaw_at"), [("ball", 300), ("hinge", 300), ("hinge", 50)])
+def test_thawing_a_calibration_that_does_not_fit_estimates_anew_without_publishing_it(kind: str, thaw_at: int) -> None:
+    """``~/freeze false`` after a loaded calibration was withheld (or while it is still being checked).
+
+    The joint estimates anew from the live markers, so its outputs must come from that new estimate only.
+    Before (hunt-calib2 B), the withheld calibration was published again from the thaw until the first solve
+    of the new window: the node's knee whose thigh plate had been put back elsewhere went out about 20 mm off
+    at e/2 ~200 for 0.1 s, status OK "estimating".
+    """
+    motion = two_segment_motion(np.random.default_rng(3), kind=kind, offset=(2500.0, 3000.0, 900.0))
+    saved = _calibrated(motion)
+    moved = _moved(motion, (20.0, 0.0, 0.0), 5.0)
+    t = 200.0 + np.arange(round(20.0 * RATE)) / RATE
+    yp, yc = _frames(moved, t, 7)
+    centre = motion.centre_world_at(t) * 1e-3
+    est = OnlineJoint.from_dict(saved)
+    est.hold_until_judged()
+    e: list[tuple[int, float]] = []
+    for k in range(t.size):
+        if k == thaw_at:
+            assert est.calibration_problem
+            est.thaw()
+        out = est.update(yp[k], yc[k], float(t[k]))
+        if k > thaw_at and k % 10 == 0:
+            try:
+                est.estimate()
+            except ValueError:
+                pass
+        if out is None:
+            continue
+        err = out.position - centre[k]
+        if kind == "hinge":
+            assert out.direction is not None
+            err = err - (err @ out.direction) * out.direction
+        e.append((k, float(err @ np.linalg.pinv(out.cov, rcond=1e-12) @ err) / (3.0 if kind == "ball" else 2.0)))
+    assert e and all(k > thaw_at + 10 for k, _ in e), e[:3]  # nothing before the new window's first solve
+    assert max(v for _, v in e) < 25.0 and float(np.mean([v for _, v in e])) < 2.0
