@@ -217,10 +217,26 @@ _UNLABELLED_HINT = (
 )
 
 
+#: A chained joint's frames in a row without an output while a chain joint had none, before its status says so.
+CHAIN_SILENT_FRAMES = 10
+
+
+def chain_waiting_text(missing: tuple[str, ...]) -> str:
+    """Why a chained joint publishes nothing: the chain joints whose per-frame outputs it lacks."""
+    names = ", ".join(missing)
+    verb = "has" if len(missing) == 1 else "have"
+    return (
+        f"no output: its segments hold the per-frame output of {names} as a marker, and {names} {verb} none "
+        f"(see {'its' if len(missing) == 1 else 'their'} status)"
+    )
+
+
 def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str) -> str:
     """The status's warning, the first that applies in order of precedence (empty: none)."""
     est, cfg = runner.estimator, runner.cfg
-    if est.calibration_problem:  # first: every output is withheld
+    if runner.chain_silent >= CHAIN_SILENT_FRAMES:  # first: its chain joints have no output, so it has none
+        return chain_waiting_text(runner.chain_missing)  # (nor can its markers be judged against a calibration)
+    if est.calibration_problem:  # every output is withheld
         return est.calibration_problem
     gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
     if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion

@@ -134,6 +134,11 @@ class JointFeed:
         self._noise_args = noise
         self.counters = dict.fromkeys(_COUNTERS, 0)
         self.last_error = ""
+        #: A chained joint: the frames in a row, up to the latest, without an output while some of its chain
+        #: joints had none (:attr:`chain_missing`); what its status blames (its own markers are not the cause).
+        self.chain_silent = 0
+        #: The chain joints without an output in the latest frame (a chained joint; empty when all had one).
+        self.chain_missing: tuple[str, ...] = ()
         self.calib = JointCalibration(cfg)
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
         #: The latest frame's live-geometry offer left for :meth:`take_sample` (``defer_sample``): (stamp s, frame).
@@ -199,9 +204,13 @@ class JointFeed:
         self._sample = None  # (a sample not taken before the next frame is dropped: its poses are gone)
         frame = self._in_workspace(frame)
         if self.chained:
-            parent = self._with_chain(frame[self.parent_rows], self.cfg.parent_chain, chain or {})
-            child = self._with_chain(frame[self.child_rows], self.cfg.child_chain, chain or {})
-            return self.process(stamp_ns, parent, child, frame)
+            chain = chain or {}
+            parent = self._with_chain(frame[self.parent_rows], self.cfg.parent_chain, chain)
+            child = self._with_chain(frame[self.child_rows], self.cfg.child_chain, chain)
+            out = self.process(stamp_ns, parent, child, frame)
+            self.chain_missing = tuple(n for n in (*self.cfg.parent_chain, *self.cfg.child_chain) if n not in chain)
+            self.chain_silent = self.chain_silent + 1 if out is None and self.chain_missing else 0
+            return out
         if self.matcher is None:
             out = self.process(stamp_ns, frame[self.parent_rows], frame[self.child_rows], frame)
             if self.live_geometry is not None:
@@ -473,3 +482,5 @@ class JointFeed:
         for key in self.counters:
             self.counters[key] = 0
         self.last_error = ""
+        self.chain_silent = 0
+        self.chain_missing = ()
