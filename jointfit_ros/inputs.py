@@ -25,7 +25,7 @@ from .interleaved_publishers import InterleaveGuard
 from .marker_parser import MarkerParser, ParsedMarkers, parse_markers
 from .params import NodeConfig
 from .raw import ConversionError, parse_pose_stamped, rotation_matrix_from_quaternion
-from .repeated_frames import RepeatedFrames, window_horizon
+from .repeated_frames import PoseRepeats, RepeatedFrames, window_horizon
 from .runner import JointRunner
 from .stamp_gaps import StampGaps
 from .timeline import Timeline
@@ -219,8 +219,11 @@ class MessageRouter:
         }
         #: The marker frames received (stamp and markers), to tell a looped replay's frames from new ones.
         self.repeats = RepeatedFrames(len(self.marker_runners))
-        #: Per pose topic, the poses received (stamp, position and orientation): a looped replay of rigid bodies.
-        self.pose_repeats = {topic: RepeatedFrames(len(pairs)) for topic, pairs in self.pose_topics.items()}
+        #: The poses received on each pose topic (stamp, position and orientation): a looped replay of rigid bodies.
+        self.pose_repeats = PoseRepeats({
+            topic: [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r, _ in pairs]
+            for topic, pairs in self.pose_topics.items()
+        })
         self._horizons = (-1.0, np.zeros(0))  # (frame period they were taken at, ns; per marker joint, ns)
         self.last_problem: tuple[str, str] | None = None
         self.frame_id = ""
@@ -242,8 +245,7 @@ class MessageRouter:
         """Forget the unlabelled-cloud prediction and the frames received (after a reset of the joints)."""
         self.parser.reset()
         self.repeats.clear()
-        for repeats in self.pose_repeats.values():
-            repeats.clear()
+        self.pose_repeats.clear()
 
     def _horizons_ns(self) -> NDArray[np.float64]:
         """How long a frame may stay in each marker joint's window (ns): :meth:`RepeatedFrames.fresh`'s horizons.
@@ -533,7 +535,10 @@ class MessageRouter:
             return []
         self.frame_id = self.frame_id or msg.frame_id
         pairs = self.pose_topics.get(topic, [])
-        fresh = self._fresh_pose(topic, stamp_ns, np.concatenate([msg.position, msg.quaternion]), t, pairs)
+        before = self.pose_repeats.count
+        values = np.concatenate([msg.position, msg.quaternion])
+        fresh = self.pose_repeats.fresh(topic, stamp_ns, values, t, self.gaps.period_s * 1e9)
+        self.counters["repeated_frames"] += self.pose_repeats.count - before
         out = []
         for k, (runner, source) in enumerate(pairs):
             # a pose received before and still in the joint's window (a looped replay): published, not added again
@@ -553,23 +558,6 @@ class MessageRouter:
             return stamp_ns
         self.counters["zero_stamps"] += 1
         return stamp_ns if self.stamp_clock is None else int(self.stamp_clock())
-
-    def _fresh_pose(
-        self, topic: str, stamp_ns: int, values: FloatArray, time_ns: int, pairs: list[tuple[JointRunner, int]]
-    ) -> NDArray[np.bool_]:
-        """Per joint of a pose topic, whether this pose (stamp, position, quaternion) is new to its window.
-
-        :class:`RepeatedFrames` as for the marker frames; the horizons are the joints' windows, those in
-        frames at the marker topic's measured period (none known: kept out for as long as remembered).
-        """
-        repeats = self.pose_repeats.get(topic)
-        if repeats is None:
-            return np.ones(len(pairs), dtype=bool)
-        windows = [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r, _ in pairs]
-        before = repeats.count
-        fresh = repeats.fresh(stamp_ns, values, time_ns, window_horizon(windows, self.gaps.period_s * 1e9))
-        self.counters["repeated_frames"] += repeats.count - before
-        return fresh
 
 
 def _note_dropped(runners: Iterable[JointRunner], n: int) -> None:

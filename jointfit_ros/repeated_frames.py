@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["REPEAT_MEMORY", "RepeatedFrames", "window_horizon"]
+__all__ = ["REPEAT_MEMORY", "PoseRepeats", "RepeatedFrames", "window_horizon"]
 
 #: Frames remembered (their stamp and a 64-bit digest of their markers: a few MB): 22 min at 100 Hz, 131 s at
 #: 1 kHz. A loop longer than that is not recognised and enters the windows again, as before.
@@ -143,3 +144,47 @@ def window_horizon(windows: list[tuple[int, float, float]], frame_interval_ns: f
         else:
             spans.append(frames * frame_interval_ns if frame_interval_ns > 0.0 else math.inf)
     return np.array(spans, dtype=np.float64)
+
+
+class PoseRepeats:
+    """The poses received on each pose topic (stamp, position and orientation): a looped replay of rigid bodies.
+
+    A :class:`RepeatedFrames` per topic, for the joints that take it (a pose completes a pair only with its
+    partner of the same stamp, which comes round with it in a loop).
+
+    Parameters
+    ----------
+    windows : mapping of str to list of (int, float, float)
+        Per pose topic, its joints' ``(window frames, window_s, half_life_s)`` (:func:`window_horizon`).
+
+    Attributes
+    ----------
+    count : int
+        Poses that some joint did not take again, over the topics, since the start (or :meth:`clear`).
+    """
+
+    def __init__(self, windows: Mapping[str, list[tuple[int, float, float]]]) -> None:
+        self._windows = {topic: list(w) for topic, w in windows.items()}
+        self._seen = {topic: RepeatedFrames(len(w)) for topic, w in self._windows.items()}
+
+    @property
+    def count(self) -> int:
+        return sum(r.count for r in self._seen.values())
+
+    def clear(self) -> None:
+        """Forget every pose (the joints' windows were emptied)."""
+        for repeats in self._seen.values():
+            repeats.clear()
+
+    def fresh(
+        self, topic: str, stamp_ns: int, values: NDArray[np.float64], time_ns: int, frame_interval_ns: float
+    ) -> NDArray[np.bool_]:
+        """Per joint of ``topic``, whether this pose (``values``: position and quaternion, (7,)) is new to its window.
+
+        ``frame_interval_ns``: the interval that windows in frames count at (the marker topic's; 0 when not
+        known: a looped pose then stays out for as long as it is remembered).
+        """
+        repeats = self._seen.get(topic)
+        if repeats is None:
+            return np.ones(0, dtype=bool)
+        return repeats.fresh(stamp_ns, values, time_ns, window_horizon(self._windows[topic], frame_interval_ns))
