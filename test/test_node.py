@@ -256,7 +256,9 @@ def test_node_end_to_end(client: _Client, tmp_path: Path) -> None:
         hip = client.status("hip")
         not_posed = int(hip.get("dropped: parent_not_posed", "0"))  # occluded pelvis: no centre to give
         checked = int(hip.get("dropped: calibration_being_checked", "0"))
-        assert 0.9 * JOINT_MISFIT_FRAMES < checked < JOINT_MISFIT_FRAMES, hip  # (frames without a pelvis: not posed)
+        # the frames before the 100th with both segments posed (the last of them is judged and published), and
+        # the few with the thigh occluded among them; frames without a pelvis count as not posed
+        assert JOINT_MISFIT_FRAMES - 1 <= checked <= JOINT_MISFIT_FRAMES + 10, hip
         assert int(hip["outputs"]) == int(hip["frames received"]) - not_posed - checked >= len(client.hip), hip
         assert client.status("hip")["frozen"] == "True"
         err, e3, _ = _hip_errors(client, rigs, t0, last=100)
