@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .hinge_from_sums import PoseSumsAxis
-from .joint_gate import JointResidual, joint_residuals
+from .joint_gate import JointResidual
 from .segments import PoseSumsCentre
 
 if TYPE_CHECKING:
@@ -159,29 +159,33 @@ class CalibrationFit:
             self._misfit[k] = ""
         self._update_problem()
 
-    def add_joint(self, z: FloatArray, solution: PoseSumsCentre | PoseSumsAxis | None, length: float) -> None:
-        """One frame with both segments posed: its relative pose ``z`` (3, 4) = ``[Q | t]`` under ``solution``.
+    def add_joint(
+        self,
+        z: FloatArray,
+        e: FloatArray,
+        residual: JointResidual | None,
+        solution: PoseSumsCentre | PoseSumsAxis | None,
+    ) -> None:
+        """One frame with both segments posed: its relative pose ``z`` (3, 4) = ``[Q | t]`` and joint residual ``e``.
 
-        ``length``: the templates' length scale (input units, the hinge's turn in length units).
-        Keeps the recent mean of the joint residual (:func:`~jointfit_core.joint_gate.joint_residuals`)
-        and of ``Q``, and every :data:`JOINT_MISFIT_FRAMES` // 10 frames judges the mean against its
-        covariance under the calibration: the estimate's (``J cov J^T``, ``J`` the mean residual's
-        derivative by the parent's and the child's estimate) plus the residual's recent per-frame
-        covariance (the frames' pose noise at the joint; on skin markers the artefact's drift).
+        ``residual``: the calibration's joint residual (the joint test's,
+        :attr:`JointTrack.residual <jointfit_core.joint_gate.JointTrack.residual>`, which has just
+        computed ``e`` from ``z``); None when ``solution`` cannot be judged (not identifiable), and
+        ``z``, ``e`` are then ignored. Keeps the recent mean of the joint residual
+        (:func:`~jointfit_core.joint_gate.joint_residuals`) and of ``Q``, and every
+        :data:`JOINT_MISFIT_FRAMES` // 10 frames judges the mean against its covariance under the
+        calibration: the estimate's (``J cov J^T``, ``J`` the mean residual's derivative by the
+        parent's and the child's estimate) plus the residual's recent per-frame covariance (the
+        frames' pose noise at the joint; on skin markers the artefact's drift).
         """
         if solution is not self._solution:
             self._solution = solution
-            self._residual = None
             self._joint_count = 0
             self._joint_misfit = ""
-            ok = solution is not None and solution.identifiable and math.isfinite(length) and length > 0.0
-            if ok:
-                assert solution is not None
-                self._residual = JointResidual.of(solution, length)
-        res = self._residual
+        self._residual = residual
+        res = residual
         if res is None:
             return
-        e = joint_residuals(z[None], res)[0]
         if not np.isfinite(e).all():
             return
         self._joint_count += 1

@@ -374,10 +374,9 @@ class OnlineJoint(JointSegments):
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
         if self._frozen and ps.parent is not None and ps.child is not None:  # does the joint still hold?
-            z = np.empty((3, 4))  # the child's pose relative to the parent's, [Q | t]
-            z[:, :3] = R[0].T @ R[1]
-            z[:, 3] = R[0].T @ (d[1] - d[0])
-            self._fit.add_joint(z, self._solution, self.length_scale)
+            # (the joint test above has just passed this frame: its relative pose and joint residual)
+            z, e = self._joint.latest
+            self._fit.add_joint(z, e, self._joint.residual, self._solution)
         if self._frozen and self._fit.add_frame(ss, ps, self._sigma):  # the markers off the calibration's templates
             if not self._fit.holding:
                 self._drop("markers_off_calibration")

@@ -214,6 +214,11 @@ class JointTrack:
         if frozen and not self.armed and self.residual is not None:
             self.limit = self._limit()
 
+    @property
+    def latest(self) -> tuple[FloatArray, FloatArray]:
+        """The last passed frame's relative pose ``[Q | t]`` (3, 4) and its joint residual under :attr:`residual`."""
+        return self.z_ref[0], self.e_ref[0]
+
     def check_one(self, R: FloatArray, d: FloatArray, number: int, frozen: bool) -> bool:
         """The test of one frame (the per-frame path): whether it passes (then it is kept as :meth:`pass_one` keeps it).
 
