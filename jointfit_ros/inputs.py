@@ -416,9 +416,8 @@ class MessageRouter:
         index, stamps, frame_ids, frames, problems = (
             parsed.index, parsed.stamps_ns, parsed.frame_ids, parsed.frames, parsed.problems
         )
-        repeated_before = self.repeats.count
         replayed = ~self.repeats.fresh_many(real_stamps, frames, stamps, self._horizons_ns())  # (K, marker joints)
-        self.counters["repeated_frames"] += self.repeats.count - repeated_before
+        self._count_repeats()
         column = {id(r): j for j, r in enumerate(self.marker_runners)}
         if index.size:
             if self.recorded is not None:
@@ -491,9 +490,8 @@ class MessageRouter:
         self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
-        repeated_before = self.repeats.count
         fresh = self.repeats.fresh(stamp_ns, frame, t, self._horizons_ns())
-        self.counters["repeated_frames"] += self.repeats.count - repeated_before
+        self._count_repeats()
         return route_frame(
             self.marker_runners, stamp_ns, frame_id, frame, time_ns=t, defer_samples=defer_bookkeeping,
             replayed=None if fresh.all() else ~fresh, on_error=self.on_joint_error,
@@ -513,32 +511,32 @@ class MessageRouter:
     def pose(self, topic: str, raw: bytes) -> list[Routed]:
         """A message of a pose topic: the outputs of the joints it produced one for."""
         self.counters["messages"] += 1
+        pairs = self.pose_topics.get(topic, [])
+        runners = [r for r, _ in pairs]
         try:
             msg = parse_pose_stamped(raw)
             R = rotation_matrix_from_quaternion(msg.quaternion)
         except ConversionError as exc:
             self._problem(f"malformed:{topic}", f"dropped a malformed message on {topic}: {exc}")
-            _note_dropped([r for r, _ in self.pose_topics.get(topic, [])], 1)
+            _note_dropped(runners, 1)
             return []
         if not np.isfinite(msg.position).all():
             self._problem(f"nan:{topic}", f"dropped a pose with a non-finite position on {topic}")
-            _note_dropped([r for r, _ in self.pose_topics.get(topic, [])], 1)
+            _note_dropped(runners, 1)
             return []
         if not self.parser.frame_id_ok(msg.frame_id, topic):
-            _note_dropped([r for r, _ in self.pose_topics.get(topic, [])], 1)
+            _note_dropped(runners, 1)
             return []
-        if self._second_publisher(topic, msg.position.reshape(1, 3), [r for r, _ in self.pose_topics.get(topic, [])]):
+        if self._second_publisher(topic, msg.position.reshape(1, 3), runners):
             return []
         stamp_ns = self._stamp(msg.stamp_ns)
-        t = self._time(stamp_ns, topic, [r for r, _ in self.pose_topics.get(topic, [])])
+        t = self._time(stamp_ns, topic, runners)
         if t is None:
             return []
         self.frame_id = self.frame_id or msg.frame_id
-        pairs = self.pose_topics.get(topic, [])
-        before = self.pose_repeats.count
         values = np.concatenate([msg.position, msg.quaternion])
         fresh = self.pose_repeats.fresh(topic, stamp_ns, values, t, self.gaps.period_s * 1e9)
-        self.counters["repeated_frames"] += self.pose_repeats.count - before
+        self._count_repeats()
         out = []
         for k, (runner, source) in enumerate(pairs):
             # a pose received before and still in the joint's window (a looped replay): published, not added again
@@ -551,6 +549,10 @@ class MessageRouter:
             if result is not None:
                 out.append(Routed(runner, stamp_ns, msg.frame_id, result))
         return out
+
+    def _count_repeats(self) -> None:
+        """``repeated_frames``: the marker frames and the poses some joint did not take again."""
+        self.counters["repeated_frames"] = self.repeats.count + self.pose_repeats.count
 
     def _stamp(self, stamp_ns: int) -> int:
         """A message's stamp; exactly 0 (unset) is counted and, live, replaced by the :attr:`stamp_clock`'s time."""
