@@ -137,7 +137,7 @@ class JointFeed:
         #: A chained joint: the frames in a row, up to the latest, without an output while some of its chain
         #: joints had none (:attr:`chain_missing`); what its status blames (its own markers are not the cause).
         self.chain_silent = 0
-        #: The chain joints without an output in the latest frame (a chained joint; empty when all had one).
+        #: The chain joints without an output in the latest frame this joint gave none (a chained joint).
         self.chain_missing: tuple[str, ...] = ()
         self.calib = JointCalibration(cfg)
         self._stamps: deque[float] = deque(maxlen=_RATE_SAMPLES)
@@ -208,7 +208,8 @@ class JointFeed:
             parent = self._with_chain(frame[self.parent_rows], self.cfg.parent_chain, chain)
             child = self._with_chain(frame[self.child_rows], self.cfg.child_chain, chain)
             out = self.process(stamp_ns, parent, child, frame)
-            self.chain_missing = tuple(n for n in (*self.cfg.parent_chain, *self.cfg.child_chain) if n not in chain)
+            if out is None:  # (the common case, an output, needs no look at the chain)
+                self.chain_missing = tuple(n for n in (*self.cfg.parent_chain, *self.cfg.child_chain) if n not in chain)
             self.chain_silent = self.chain_silent + 1 if out is None and self.chain_missing else 0
             return out
         if self.matcher is None:
