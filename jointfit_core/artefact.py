@@ -534,6 +534,7 @@ def artefact_covariance(
     zf = z.reshape(-1)
     scale2 = 0.0
     z_rem = zf
+    feature_ms = float(np.mean(np.sum(features**2, axis=1)))  # the features' mean energy per frame
     if float(np.max(var)) > 0.0:
         U, sv, _ = np.linalg.svd(cols, full_matrices=False)
         U = U[:, sv > sv[0] * 1e-8]
@@ -545,7 +546,6 @@ def artefact_covariance(
         # With the literature prior tied to the deforming cluster's residual (eq. A6) where that is more
         # cautious: a cluster that does not deform (a plate) says nothing about its rigid motion.
         big = int(np.argmax(np.asarray(weights, dtype=np.float64)))
-        feature_ms = float(np.mean(np.sum(features**2, axis=1)))
         post2, nu_post = posterior_scale2(scale2, nu, prior_scale2(templates[big].shape[0], feature_ms))
         scale2 = max(t_widened(scale2, nu), t_widened(post2, nu_post))
     artefact = scale2 * cov_unit
@@ -562,5 +562,5 @@ def artefact_covariance(
         scale=np.sqrt(scale2 * np.asarray(weights, dtype=np.float64)),
         tau=tau,
         bandwidth=bandwidth,
-        cluster_motion=scale2 * float(np.mean(np.sum(features**2, axis=1))) * var.reshape(2, 6),
+        cluster_motion=scale2 * feature_ms * var.reshape(2, 6),
     )
