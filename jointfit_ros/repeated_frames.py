@@ -166,6 +166,8 @@ class PoseRepeats:
     def __init__(self, windows: Mapping[str, list[tuple[int, float, float]]]) -> None:
         self._windows = {topic: list(w) for topic, w in windows.items()}
         self._seen = {topic: RepeatedFrames(len(w)) for topic, w in self._windows.items()}
+        # per topic, the horizons and the frame interval they were taken at (taken again when it changes)
+        self._horizons: dict[str, tuple[float, NDArray[np.float64]]] = {}
 
     @property
     def count(self) -> int:
@@ -187,4 +189,8 @@ class PoseRepeats:
         repeats = self._seen.get(topic)
         if repeats is None:
             return np.ones(0, dtype=bool)
-        return repeats.fresh(stamp_ns, values, time_ns, window_horizon(self._windows[topic], frame_interval_ns))
+        cached = self._horizons.get(topic)
+        if cached is None or cached[0] != frame_interval_ns:
+            cached = (frame_interval_ns, window_horizon(self._windows[topic], frame_interval_ns))
+            self._horizons[topic] = cached
+        return repeats.fresh(stamp_ns, values, time_ns, cached[1])
