@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from jointfit_core.estimator import JointOutput
 
+from .cluster_check import ClusterCheck
 from .interleaved_publishers import InterleaveGuard
 from .marker_parser import MarkerParser, ParsedMarkers, parse_markers
 from .params import NodeConfig
@@ -240,12 +241,18 @@ class MessageRouter:
         self.parser = MarkerParser(cfg, self.counters, self._problem)
         self.recorded: list[tuple[int, FloatArray]] | None = None
         self.timeline = Timeline(round(cfg.max_stamp_jump * 1e9), clock=clock, counters=self.counters)
+        #: The marker-topic segments' pair distances: a marker that does not move with its segment (each marker
+        #: joint's status names it, :meth:`JointRunner.odd_markers <jointfit_ros.runner.JointRunner.odd_markers>`).
+        self.clusters = ClusterCheck(cfg, [r.cfg for r in self.marker_runners])
+        for r in self.marker_runners:
+            r.cluster_check = self.clusters
 
     def reset(self) -> None:
         """Forget the unlabelled-cloud prediction and the frames received (after a reset of the joints)."""
         self.parser.reset()
         self.repeats.clear()
         self.pose_repeats.clear()
+        self.clusters.clear()
 
     def _horizons_ns(self) -> NDArray[np.float64]:
         """How long a frame may stay in each marker joint's window (ns): :meth:`RepeatedFrames.fresh`'s horizons.
@@ -420,6 +427,7 @@ class MessageRouter:
         self._count_repeats()
         column = {id(r): j for j, r in enumerate(self.marker_runners)}
         if index.size:
+            self.clusters.add(stamps, frames)
             if self.recorded is not None:
                 self.recorded.extend(zip(stamps.tolist(), frames, strict=True))
             unpaired = [r for r in self.marker_runners if r.matcher is None]
@@ -490,6 +498,7 @@ class MessageRouter:
         self.routed_stamp_ns = stamp_ns
         if self.recorded is not None:
             self.recorded.append((t, frame))
+        self.clusters.add(np.array([t]), frame[None])
         fresh = self.repeats.fresh(stamp_ns, frame, t, self._horizons_ns())
         self._count_repeats()
         return route_frame(

@@ -103,7 +103,7 @@ def joint_status(runner: JointRunner) -> tuple[Status, bool]:
     values = _input_values(runner)
     sol = est.solution
     if sol is None:
-        msg = runner.waiting() or runner.last_error or "collecting frames"
+        msg = runner.odd_markers() or runner.waiting() or runner.last_error or "collecting frames"
         return Status(WARN if est.n_frames_seen else STALE, msg, values), False
     u = runner.node.units
     units = unit_problem(est.length_scale, u)
@@ -238,6 +238,9 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
         return chain_waiting_text(runner.chain_missing)  # (nor can its markers be judged against a calibration)
     if est.calibration_problem:  # every output is withheld
         return est.calibration_problem
+    odd = runner.odd_markers()
+    if odd:  # a label on the wrong segment: what its gate, identifiability and covariance say follows from it
+        return odd
     gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
     if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
         return gated + _UNLABELLED_HINT * runner.node.unlabelled

@@ -46,6 +46,7 @@ from jointfit_core.segments import PoseSumsCentre
 from .absurd_values import unit_problem
 from .anatomy_report import anatomical_summary, joint_rom, rom_summary
 from .bag_blocks import can_fork
+from .cluster_check import recording_odd_markers
 from .geometry import SegmentGeometry, landmark_stat
 from .offline import FitRun, JointTrace
 from .runner import JointRunner
@@ -176,6 +177,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["message"] = sol.reason if not sol.identifiable else warning
     out["gate_warning"] = warning
     out["units_warning"] = units_warning(run, r)
+    out["label_warning"] = "" if run.frames is None else recording_odd_markers(run.cfg, r.cfg, run.frames)
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
     out["lever_ratio"] = r.lever_ratios()  # the joint's distance from each marker cluster, in cluster radii
@@ -328,7 +330,10 @@ def fit_summary(
         dof, p-value, ratio, spread, verdict; see
         :mod:`jointfit_core.consistency`), and ``consistency_warning`` its
         "skin artefact dominates" message when it fails (empty otherwise);
-        ``units_warning``: :func:`units_warning` (empty when the clusters' size fits the length unit).
+        ``units_warning``: :func:`units_warning` (empty when the clusters' size fits the length unit);
+        ``label_warning``: a marker of the joint's segments that does not keep its distances to the others
+        (on another segment or its label swapped: :func:`~jointfit_ros.cluster_check.recording_odd_markers`;
+        empty when none).
     """
     return {
         "jointfit_version": version,

@@ -30,6 +30,7 @@ from jointfit_core.errors import JointfitError
 
 from .absurd_values import ABSURD_RADII, output_sane, unit_problem
 from .activity import InputActivity
+from .cluster_check import ClusterCheck
 from .consistency_status import ConsistencyMonitor
 from .joint_diagnostics import ERROR, OK, STALE, WARN, Status, joint_status, live_status
 from .joint_feed import JointFeed
@@ -63,7 +64,17 @@ class JointRunner(JointFeed):
         self.saver: Callable[[], str] | None = self.save if cfg.calibration_file else None
         #: The consistency check across movement blocks of the window (run at diagnostics time).
         self.consistency = ConsistencyMonitor()
+        #: The node's marker-distance check of its segments (set by the router that feeds it; None: not fed by one).
+        self.cluster_check: ClusterCheck | None = None
         self._load()
+
+    def odd_markers(self) -> str:
+        """Markers of the joint's segments that do not move with their segment (a label on the wrong one), in words.
+
+        Empty when none, or when no router's :class:`~jointfit_ros.cluster_check.ClusterCheck` feeds the joint.
+        """
+        check = self.cluster_check
+        return "" if check is None else check.warning(self.cfg)
 
     # ------------------------------------------------------------------ calibration (:mod:`.joint_calibration`)
 
