@@ -42,6 +42,7 @@ from .calibration_fit import CalibrationFit
 from .checks import check_frame
 from .frame_clock import FrameClock
 from .joint_args import check_settings, virtual_markers_template
+from .joint_estimate import JointEstimate
 from .joint_file import CALIBRATION_FORMAT, CALIBRATION_VERSION
 from .joint_gate import JointTrack
 from .joint_outliers import GateLimits, after_failure
@@ -206,6 +207,9 @@ class OnlineJoint(JointSegments):
         # The joint-consistency test (jointfit_core.joint_gate): frames whose segments break the joint.
         self._joint = JointTrack(self.gate)
         self.joint_gated_frames = 0
+        #: Frame numbers at which the joint broke for good (:attr:`JointTrack.broke
+        #: <jointfit_core.joint_gate.JointTrack.broke>`); estimating, the window restarted there.
+        self.joint_breaks: list[int] = []
         # while frozen: do the markers still fit the calibration's templates (a marker knocked on its cluster)?
         self._fit = CalibrationFit(self.attachment)
         self._outputs = WorldOutput(self.kind)
@@ -373,6 +377,8 @@ class OnlineJoint(JointSegments):
                 self._stats.chained = False
                 self.frame_poses = None  # one of the two poses is wrong, which one is not known
                 return None
+            if self._joint.broke:  # the relative pose changed for good: the window's frames are another joint's
+                self._joint_broke(frame_no)
         if self._frozen and ps.parent is not None and ps.child is not None:  # does the joint still hold?
             # (the joint test above has just passed this frame: its relative pose and joint residual)
             z, e = self._joint.latest
@@ -403,6 +409,21 @@ class OnlineJoint(JointSegments):
     def calibration_problem(self) -> str:
         """Empty while a frozen joint's markers fit its calibration; else why its outputs are withheld."""
         return self._fit.problem if self._frozen else ""
+
+    def _joint_broke(self, frame_no: int) -> None:
+        """The joint test found the two segments' relative pose changed for good at frame ``frame_no``.
+
+        Estimating: the window and the estimate are forgotten (a new generation: solves in flight are
+        not installed), the frames from this one on make the next. Frozen: the outputs are held until
+        the calibration is judged against the markers again (:meth:`hold_until_judged`).
+        """
+        self._joint.broke = False
+        self.joint_breaks.append(frame_no)
+        if self._frozen:
+            self.hold_until_judged()
+            return
+        JointEstimate.reset(self)
+        self._installed()
 
     def hold_until_judged(self) -> None:
         """A frozen calibration from another session: no output until its markers have been judged against it.

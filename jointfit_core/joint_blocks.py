@@ -358,7 +358,7 @@ def _gated_block(
         if joint._joint.armed:  # the joint test, each frame against the one before it (a superset)
             both = np.flatnonzero(posed_ok.all(axis=1))
             score = joint._joint.scores_of(relative_poses(R[both], d[both]), numbers[rows[both]])
-            candidate[both[score > (1.0 - _SS_MARGIN) * joint._joint.limit]] = True
+            candidate[both[_joint_candidates(joint, score)]] = True
         sequential[rows[candidate]] = True
     queue = np.flatnonzero(sequential).tolist()  # a heap: frames to take one by one, oldest first
     queued = set(queue)
@@ -417,11 +417,24 @@ def _gated_block(
             if nxt.size:
                 at_rows = np.searchsorted(rows, nxt)
                 score = joint._joint.scores_of(relative_poses(R[at_rows], d[at_rows]), numbers[nxt])
-                for g in nxt[score > (1.0 - _SS_MARGIN) * joint._joint.limit].tolist():
+                for g in nxt[_joint_candidates(joint, score)].tolist():
                     if g not in queued:
                         heapq.heappush(queue, g)
                         queued.add(g)
         start = f + 1
+
+
+def _joint_candidates(joint: OnlineJoint, score: FloatArray) -> NDArray[np.bool_]:
+    """Frames the joint test might fail, or find the joint broken at, by their :meth:`JointTrack.scores_of`.
+
+    Over the limit (with a margin); every frame while the test is failing frames (it scores them
+    without the gap's allowance, and against an expired reference: ``JointTrack.broke``).
+    """
+    track = joint._joint
+    out: NDArray[np.bool_] = score > (1.0 - _SS_MARGIN) * track.limit
+    if track.fails_in_row:  # scored without the gap's allowance, or against the expired reference, one by one
+        out[:] = True
+    return out
 
 
 def _push_block(

@@ -28,7 +28,12 @@ lever arm times the corruption's turn, or its shift. The test therefore
 scores the change of ``e`` from the joint's last passed frame,
 ``score = |e_k - e_ref| / sqrt(g)`` (input units; ``g`` frames apart, as the
 segment gate lets a change grow over a gap; against the frame before the last
-passed one, ``g - 1``: the frame skipped over does not widen the allowance). It is not divided by the turn
+passed one, ``g - 1``: the frame skipped over does not widen the allowance;
+not divided while the frames since the reference failed: they were held out
+because the joint stepped, not drifted, and a step that stays must not pass
+by the allowance growing, as a 30-frame rigid glitch did from its 18th frame;
+then a frame back within :data:`JOINT_STEP_RMS` times the estimate's rms
+residual of the reference passes). It is not divided by the turn
 between the two frames: at mocap rates a ghost turns a cluster by far more
 than the limb turns in one frame, and would be allowed what such a turn
 allows. The joint's *normal score* is a robust high level (median plus
@@ -43,6 +48,25 @@ frames ago) the frame passes and becomes the reference; after
 :data:`JOINT_GATE_RELOCK_FRAMES` failures in a row the new state is taken
 (a new subject, a calibration from another session) and the test starts
 afresh.
+
+**A joint that broke for good.** When the failures last until the
+references expire (more than :data:`~jointfit_core.gate.GATE_JUMP_GAP_CAP`
+frames ago: the frame would pass unscored), each frame is compared with the
+expired reference, ``|e_k - e_ref|`` (not divided by the gap: the frames
+between failed, the joint stepped rather than drifted). Within the limit, or
+:data:`JOINT_STEP_RMS` times the estimate's rms residual, the joint came back:
+the frame passes. Above it, the frame is held out too, until
+:data:`JOINT_BREAK_FRAMES` frames after the reference; a frame still off then
+means the two segments' relative pose changed for good (a tracker that swapped
+the two thighs' labels, a cluster moved on its bone): it passes as the new
+reference and :attr:`JointTrack.broke` is set, as it is at a relock. The frames
+before belong to another joint: the estimator forgets its window and estimate
+(frozen: holds its outputs until the calibration is judged again). Before
+(2026-12-06), the first frame past the expired references passed and became the
+reference: with the left and right thigh clusters' labels swapped at 20 s, the
+knees were published 300-360 mm off at mean e/k 13-580, the skin left knee with
+status OK; and a skin thigh posed from 3 markers for 14 frames (55 mm of joint
+residual) entered the window for its last frames.
 """
 
 from __future__ import annotations
@@ -59,8 +83,10 @@ from .hinge_from_sums import PoseSumsAxis
 from .segments import PoseSumsCentre
 
 __all__ = [
+    "JOINT_BREAK_FRAMES",
     "JOINT_GATE_MIN_SCORES",
     "JOINT_GATE_RELOCK_FRAMES",
+    "JOINT_STEP_RMS",
     "JointResidual",
     "JointTrack",
     "joint_residuals",
@@ -72,6 +98,15 @@ FloatArray = NDArray[np.float64]
 JOINT_GATE_MIN_SCORES = 20
 #: Joint test: failures in a row after which the new state is taken as the reference.
 JOINT_GATE_RELOCK_FRAMES = 25
+#: Joint test: frames after its last passed frame that a joint still off it is held out before it is taken to
+#: have broken for good (a skin cluster posed from 3 markers for 14 frames stepped the hip's joint residual by
+#: 55 mm, then came back).
+JOINT_BREAK_FRAMES = 100
+#: Joint test: while frames fail, a frame whose joint residual is within this many times the estimate's rms
+#: residual of the last passed frame's has come back (a step within the joint's usual scatter is no break):
+#: standing still, the normal frame-to-frame change (and so the limit) is tiny, and the real hip's 1.2 mm
+#: shift at the end of its trial held 13 frames out against a 0.76 mm limit, where its rms residual is 9.5 mm.
+JOINT_STEP_RMS = 3.0
 
 
 @dataclass(frozen=True)
@@ -140,6 +175,10 @@ class JointTrack:
         self.ref_frame = np.zeros(2, dtype=np.int64)  # their frame numbers; 0: none
         self.e_ref = np.zeros((2, 3))  # their joint residuals under the current residual
         self.fails_in_row = 0
+        self.step_floor = 0.0  # JOINT_STEP_RMS times the armed estimate's rms residual (input units)
+        #: The joint broke for good at the last frame passed (a relock, or failures until the references
+        #: expired and the frame still off them, see the module notes); the estimator clears it.
+        self.broke = False
 
     @property
     def armed(self) -> bool:
@@ -154,6 +193,8 @@ class JointTrack:
         self.residual = JointResidual.of(solution, length)
         self.e_ref = joint_residuals(self.z_ref, self.residual)
         self.limit = self._limit()
+        rms = float(solution.rms)
+        self.step_floor = JOINT_STEP_RMS * rms if np.isfinite(rms) else 0.0
 
     def _limit(self) -> float:
         """``gate`` times the normal score of the scores kept (inf with too few, or the gate off)."""
@@ -194,12 +235,15 @@ class JointTrack:
             return float("nan"), None
         e = joint_residuals(z[None], res)[0]
         best = float("inf")
+        failing = self.fails_in_row > 0  # the frames since failed: the joint did not drift there, no gap allowance
         for back in (0, 1):
             at = int(self.ref_frame[back])
             gap = number - at
             if at > 0 and gap <= GATE_JUMP_GAP_CAP:
                 d = e - self.e_ref[back]
-                best = min(best, math.sqrt(float(d @ d)) / math.sqrt(max(gap - back, 1)))
+                best = min(best, math.sqrt(float(d @ d)) / (1.0 if failing else math.sqrt(max(gap - back, 1))))
+        if failing and best < float("inf") and self.armed:  # back within the joint's usual scatter: passes
+            best *= self.limit / max(self.limit, self.step_floor)
         return (best if best < float("inf") else float("nan")), e
 
     def pass_one(self, z: FloatArray, number: int, score: float, e: FloatArray | None, frozen: bool) -> None:
@@ -236,10 +280,27 @@ class JointTrack:
         np.matmul(Rp_t, R[1], out=z[:, :3])
         np.matmul(Rp_t, d[1] - d[0], out=z[:, 3])
         score, e = self.score_one(z, number)
-        if self.fails(score):
+        if score != score and self.fails_in_row and e is not None and self._still_off(e):
+            # the references expired while it failed, and it is still off them: held out until it comes back, or
+            # until it has stayed off for JOINT_BREAK_FRAMES frames (then it broke for good: the new state is taken)
+            if number - int(self.ref_frame[0]) <= JOINT_BREAK_FRAMES:
+                self.fails_in_row += 1
+                return False
+            self.broke = True
+        elif self.fails(score):
             return False
         self.pass_one(z, number, score, e, frozen)
         return True
+
+    def _still_off(self, e: FloatArray) -> bool:
+        """Whether a frame's joint residual ``e`` is still off the last passed frame's by more than one frame may change.
+
+        Not divided by the gap: the frames between failed, so the joint did not drift there, it stepped; a
+        step that went back (a glitch) leaves only the drift of the gap, well within one frame's limit.
+        """
+        d = e - self.e_ref[0]
+        step = math.sqrt(float(d @ d))
+        return bool(self.armed and self.ref_frame[0] > 0 and step > max(self.limit, self.step_floor))
 
     def fails(self, score: float) -> bool:
         """Whether a frame of ``score`` (:meth:`scores_of`) fails (and counts the failures in a row)."""
@@ -248,6 +309,7 @@ class JointTrack:
         self.fails_in_row += 1
         if self.fails_in_row > JOINT_GATE_RELOCK_FRAMES:
             self.fails_in_row = 0
+            self.broke = True
             self.scores.clear()
             self.limit = np.inf  # re-armed by the next estimate (or, frozen, by enough scores)
             return False

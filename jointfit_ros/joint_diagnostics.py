@@ -54,6 +54,14 @@ class Status:
     values: dict[str, Any]
 
 
+#: Said while a joint whose window restarted after it broke (:attr:`OnlineJoint.joint_breaks
+#: <jointfit_core.estimator.OnlineJoint.joint_breaks>`) has no estimate again.
+BROKE_TEXT = (
+    "estimating afresh: the two segments' relative pose changed for good (labels swapped between segments, a "
+    "cluster moved on its bone, another subject), so the frames before were forgotten"
+)
+
+
 def _largest_sd(cov: FloatArray) -> float:
     return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
 
@@ -104,6 +112,8 @@ def joint_status(runner: JointRunner) -> tuple[Status, bool]:
     sol = est.solution
     if sol is None:
         msg = runner.odd_markers() or runner.waiting() or runner.last_error or "collecting frames"
+        if est.joint_breaks and not runner.waiting():
+            msg = f"{BROKE_TEXT}; {msg}"
         return Status(WARN if est.n_frames_seen else STALE, msg, values), False
     u = runner.node.units
     units = unit_problem(est.length_scale, u)
@@ -160,6 +170,7 @@ def _input_values(runner: JointRunner) -> dict[str, Any]:
         values[f"{side} gated (%)"] = round(100.0 * n / est.n_frames_seen, 2) if est.n_frames_seen else 0.0
     for side, n in zip(("parent", "child"), est.relabelled_frames, strict=True):
         values[f"{side} swapped labels put right (frames)"] = n
+    values["joint broke for good (times)"] = len(est.joint_breaks)
     if runner.loaded_from:
         values["calibration loaded from"] = runner.loaded_from
     if runner.calib.load_problem:
@@ -244,6 +255,13 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
     gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
     if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
         return gated + _UNLABELLED_HINT * runner.node.unlabelled
+    if est.joint_breaks:  # the estimate is of the frames since: of another joint, when a tracker swapped clusters
+        return (
+            f"the joint broke for good {len(est.joint_breaks)} time(s), the last at frame {est.joint_breaks[-1]}: "
+            "its two segments' relative pose changed at once and stayed so; the estimate is of the frames since. "
+            "If a tracker swapped this segment's labels with another cluster's (the two thighs), it is another "
+            "joint's; check the labels (~/reset clears this)"
+        )
     if not sol.identifiable:
         outputs = (
             "per-frame outputs published with a widened covariance (publish_unidentified)"
