@@ -204,6 +204,8 @@ def _one_line(run: FitRun, joint: dict[str, Any]) -> str:
         verdict += f"; WARNING: {joint['units_warning']}"
     if joint.get("label_warning"):
         verdict += f"; WARNING: {joint['label_warning']}"
+    if joint.get("cluster_warning"):
+        verdict += f"; WARNING: {joint['cluster_warning']}"
     if joint.get("consistency_warning"):
         verdict += f"; WARNING: {joint['consistency_warning']}"
     gated = joint["gated"]
@@ -464,7 +466,7 @@ def fit_main(argv: Sequence[str]) -> int:
     if stale:  # also with --quiet: a calibration there is not this fit's
         print(f"WARNING: {out_dir}/ still holds {', '.join(stale)} of an earlier fit, not of this one "
               "(summary.json lists what this fit wrote)", file=sys.stderr)
-    warned = any(j.get("gate_warning") or j.get("label_warning") for j in summary["joints"])
+    warned = any(j.get("gate_warning") or j.get("label_warning") or j.get("cluster_warning") for j in summary["joints"])
     return 0 if len(calibrations) == len(run.traces) and not warned else 3
 
 

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointfit_core.axis_sign import direction_sd_deg
+from jointfit_core.cluster_turn import TURN_SD_MAX_DEG, weakest_turn_sd_deg
 from jointfit_core.errors import InputError
 from jointfit_core.estimator import OnlineJoint
 from jointfit_core.gate import gated_verdict
@@ -37,7 +38,7 @@ from .progress import coverage_values, done_check, estimate_sd
 if TYPE_CHECKING:
     from .runner import JointRunner
 
-__all__ = ["OK", "WARN", "ERROR", "STALE", "Status", "joint_status", "live_status"]
+__all__ = ["OK", "WARN", "ERROR", "STALE", "Status", "joint_status", "live_status", "weak_cluster"]
 
 FloatArray = NDArray[np.float64]
 
@@ -252,6 +253,9 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
     odd = runner.odd_markers()
     if odd:  # a label on the wrong segment: what its gate, identifiability and covariance say follows from it
         return odd
+    turn = weak_cluster(runner)
+    if turn:
+        return turn
     gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
     if gated:  # before the motion's verdict: a gate that deleted real movement must not blame the motion
         return gated + _UNLABELLED_HINT * runner.node.unlabelled
@@ -274,6 +278,25 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
     if runner.sign.problem:
         return f"hinge sign convention not honoured: {runner.sign.problem}"
     return runner.consistency.warning(est) if sol.identifiable else ""
+
+
+def weak_cluster(runner: JointRunner) -> str:
+    """A segment whose markers lie so nearly on a line that each frame turns it by over TURN_SD_MAX_DEG (words)."""
+    est = runner.estimator
+    for side, template, sigma, name in zip(
+        ("parent", "child"), est.templates, est.noise_std, runner.cfg.segment_names(), strict=True
+    ):
+        if template is None or not sigma > 0.0:
+            continue
+        sd = weakest_turn_sd_deg(template, sigma)
+        if sd > TURN_SD_MAX_DEG:
+            return (
+                f"the {name.removeprefix(side + ' ')} markers lie nearly on a line: every frame turns the {side} "
+                f"about it by +-{min(sd, 180.0):.0f} deg (sd, at its noise {sigma:.3g}), beyond the "
+                f"{TURN_SD_MAX_DEG:.0f} deg to which the covariance holds (it under-states the error): add a marker "
+                "off the line, or spread them"
+            )
+    return ""
 
 
 def live_status(runner: JointRunner, activity: InputActivity, now: float, stale_after: float) -> Status:

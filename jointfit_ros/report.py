@@ -48,6 +48,7 @@ from .anatomy_report import anatomical_summary, joint_rom, rom_summary
 from .bag_blocks import can_fork
 from .cluster_check import recording_odd_markers
 from .geometry import SegmentGeometry, landmark_stat
+from .joint_diagnostics import weak_cluster
 from .offline import FitRun, JointTrace
 from .runner import JointRunner
 
@@ -179,6 +180,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["gate_warning"] = warning
     out["units_warning"] = units_warning(run, r)
     out["label_warning"] = "" if run.frames is None else recording_odd_markers(run.cfg, r.cfg, run.frames)
+    out["cluster_warning"] = weak_cluster(r)  # markers nearly on a line: the covariance under-states
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
     out["lever_ratio"] = r.lever_ratios()  # the joint's distance from each marker cluster, in cluster radii
@@ -334,7 +336,8 @@ def fit_summary(
         ``units_warning``: :func:`units_warning` (empty when the clusters' size fits the length unit);
         ``label_warning``: a marker of the joint's segments that does not keep its distances to the others
         (on another segment or its label swapped: :func:`~jointfit_ros.cluster_check.recording_odd_markers`;
-        empty when none).
+        empty when none); ``cluster_warning``: a segment whose markers lie so nearly on a line that the
+        covariance under-states (:func:`~jointfit_ros.joint_diagnostics.weak_cluster`; empty when none).
     """
     return {
         "jointfit_version": version,
