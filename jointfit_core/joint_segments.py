@@ -140,6 +140,16 @@ class JointSegments(JointEstimate):
             )
         return ""
 
+    def rarely_seen(self) -> tuple[list[int], list[int]]:
+        """The parent's and the child's markers (rows) that hold their templates back: missing from most frames.
+
+        :meth:`SegmentTracker.rarely_seen <jointfit_core.segment_tracker.SegmentTracker.rarely_seen>`; empty
+        lists once the templates are built.
+        """
+        if self._pose is None:
+            return [], []
+        return self._pose.parent.rarely_seen(), self._pose.child.rarely_seen()
+
     def _make_segments(self, n_parent: int, n_child: int) -> None:
         """The two segments, of ``n_parent`` and ``n_child`` markers (their templates to build).
 

@@ -47,6 +47,11 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
+#: Frames offered for a template before a marker missing from most of them is named (:meth:`SegmentTracker.rarely_seen`).
+RARELY_SEEN_MIN_FRAMES = 100
+#: Share of those frames a marker is missing from to be named.
+RARELY_SEEN_SHARE = 0.9
+
 #: Template building: a candidate frame is discarded when its inter-marker distances changed from the
 #: frame before by more than this many times the usual (90th percentile) change, and did not come
 #: back (:func:`~jointfit_core.gate.consistent_frames`).
@@ -133,6 +138,8 @@ class SegmentTracker:
         self.template_sigma = 0.0  # marker noise seen in the template frames (input units)
         self._frames: list[FloatArray] = []  # centred, fully visible candidate frames
         self._seen = 0
+        self._offered = 0  # frames offered for the template, and in how many of them each marker was missing
+        self._missing = np.zeros(n_markers, dtype=np.int64)
         self._cache: dict[bytes, VisibleSet | None] = {}
         self._full_rot = 0.0
         self.rms_radius = 0.0  # of the template (input units; 0 until it exists)
@@ -166,7 +173,18 @@ class SegmentTracker:
 
     @property
     def template_progress(self) -> int:
-        return len(self._frames)
+        """Fully visible frames collected for the template (``template_frames`` once it is built)."""
+        return self.template_frames if self.template is not None else len(self._frames)
+
+    def rarely_seen(self) -> list[int]:
+        """Markers (rows) missing from at least :data:`RARELY_SEEN_SHARE` of the frames offered for the template.
+
+        Empty once the template is built, or before :data:`RARELY_SEEN_MIN_FRAMES` frames were offered. A
+        template needs frames with every marker visible: such a marker holds it (and the joint) back.
+        """
+        if self.template is not None or self._offered < RARELY_SEEN_MIN_FRAMES:
+            return []
+        return np.flatnonzero(self._missing >= RARELY_SEEN_SHARE * self._offered).tolist()
 
     def add_template_frame(self, y: FloatArray) -> None:
         """Use a fully visible frame ``y`` (P, 3) for the template (consistent frames aligned and averaged).
@@ -185,7 +203,12 @@ class SegmentTracker:
         aligned frames' changes from one to the next seed the gate's normal
         jump (:class:`~jointfit_core.gate.ShapeTrack`).
         """
-        if self.template is not None or np.isnan(y).any():
+        if self.template is not None:
+            return
+        missing = np.isnan(y).any(axis=1)
+        self._offered += 1
+        self._missing += missing
+        if missing.any():
             return
         x = y - y.mean(axis=0)
         if not shape_ok(x):

@@ -460,6 +460,12 @@ class JointFeed:
         segments are never fully visible and the templates wait for them.
         """
         text = self.estimator.status()
+        unseen = self._rarely_seen()
+        if text and unseen:
+            text += (
+                f"; {', '.join(unseen)} missing from nearly every frame so far: a template needs frames with every "
+                "marker of its segment visible (if a marker is gone for good, leave it out of the segment's markers)"
+            )
         chain = (*self.cfg.parent_chain, *self.cfg.child_chain)
         if text and chain and not self.estimator.templates_ready:
             text += (
@@ -467,6 +473,17 @@ class JointFeed:
                 f"{'that joint has' if len(chain) == 1 else 'those joints have'} no output, they are never fully visible)"
             )
         return text
+
+    def _rarely_seen(self) -> list[str]:
+        """The names of the markers that hold the templates back (:meth:`OnlineJoint.rarely_seen`)."""
+        names: list[str] = []
+        for rows, markers in zip(
+            self.estimator.rarely_seen(),
+            ((*self.cfg.parent_markers, *self.cfg.parent_chain), (*self.cfg.child_markers, *self.cfg.child_chain)),
+            strict=True,
+        ):
+            names.extend(markers[i] if i < len(markers) else f"marker {i + 1}" for i in rows)
+        return names
 
     def _failed(self, exc: Exception) -> None:
         self.counters["estimate_failures"] += 1
