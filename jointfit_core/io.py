@@ -132,7 +132,8 @@ class MarkerData:
         Parameters
         ----------
         names : sequence of str, length K
-            Labels to take, in the wanted order.
+            Labels to take, in the wanted order; a name without the subject prefix of a label
+            (``RTHI1`` for ``Subject:RTHI1``) takes that label when only one has it.
 
         Returns
         -------
@@ -150,8 +151,8 @@ class MarkerData:
             raise InputError(
                 f"names: expected a sequence of labels, got the single str {names!r}; use [{names!r}]"
             )
-        wanted = list(names)
-        missing = [name for name in wanted if name not in self.labels]
+        wanted = [self._label_of(name) for name in names]
+        missing = [name for name, label in zip(names, wanted, strict=True) if label not in self.labels]
         if missing:
             raise InputError(f"markers not found: {missing}; available labels: {list(self.labels)}")
         ambiguous = sorted({name for name in wanted if self.labels.count(name) > 1})
@@ -159,6 +160,18 @@ class MarkerData:
             raise InputError(f"labels appear more than once in the data, cannot select: {ambiguous}")
         index = [self.labels.index(name) for name in wanted]
         return np.array(self.markers[:, index, :], dtype=np.float64, copy=True)
+
+    def _label_of(self, name: str) -> str:
+        """The file's label for ``name``: itself, or the one label that is ``name`` with a subject prefix.
+
+        Vicon Nexus writes ``Subject:RTHI1`` when the trial holds a labelled subject; a configuration
+        names ``RTHI1``. Two subjects (``Ann:RTHI1``, ``Bob:RTHI1``) are ambiguous: the name is left as
+        it is (not found), and the error lists the labels.
+        """
+        if name in self.labels:
+            return name
+        prefixed = [label for label in self.labels if label.rpartition(":")[2] == name and ":" in label]
+        return prefixed[0] if len(prefixed) == 1 else name
 
     def to_units(self, units: str) -> MarkerData:
         """Return the same data expressed in another length unit.

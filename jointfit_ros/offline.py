@@ -264,7 +264,9 @@ def with_file_marker_names(values: Mapping[str, Any], labels: Sequence[str], sou
         ``marker_names`` = the labels that occur once in the file (empty and
         repeated labels cannot be told apart and are left out), so that the
         joints' ``parent_markers``, ``child_markers``, ``axis_toward_marker``
-        and ``axis_from_marker`` and the segments' ``markers`` name file labels.
+        and ``axis_from_marker`` and the segments' ``markers`` name file labels
+        (or, when some name is no label, the labels without their subject prefix:
+        ``RTHI1`` for Vicon's ``Subject:RTHI1``, where that is unique in the file).
 
     Raises
     ------
@@ -283,6 +285,11 @@ def with_file_marker_names(values: Mapping[str, Any], labels: Sequence[str], sou
         (j, (*_MARKER_LISTS, *_MARKER_NAMES)) for j in (joints if isinstance(joints, list) else [])
     ]
     owners += [(g, ("markers",)) for g in (segments if isinstance(segments, list) else [])]
+    named = [m for joint, keys in owners for key in keys for m in _names_in(out.get(f"{joint}.{key}"))]
+    if any(m not in counts for m in named):  # named without the subject prefix of the labels ("Subject:RTHI1")?
+        plain = Counter(label.rpartition(":")[2] for label in names)
+        names = [label.rpartition(":")[2] if plain[label.rpartition(":")[2]] == 1 else label for label in names]
+        counts.update({name: 1 for name in names if name not in counts})
     for joint, keys in owners:
         for key in keys:
             given = out.get(f"{joint}.{key}")
@@ -304,6 +311,13 @@ def with_file_marker_names(values: Mapping[str, Any], labels: Sequence[str], sou
                     )
     out["marker_names"] = names
     return out
+
+
+def _names_in(value: Any) -> list[str]:
+    """The marker names a parameter value gives (a name or a list of names; anything else: none)."""
+    if isinstance(value, str):
+        return [value] if value else []
+    return [m for m in value if isinstance(m, str)] if isinstance(value, list) else []
 
 
 def _read_markers(path: Path, kind: str, cfg: NodeConfig, data: MarkerData | None) -> MarkerData:
