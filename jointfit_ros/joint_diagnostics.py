@@ -253,7 +253,7 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
     odd = runner.odd_markers()
     if odd:  # a label on the wrong segment: what its gate, identifiability and covariance say follows from it
         return odd
-    turn = weak_cluster(runner)
+    turn = weak_cluster(runner) if sol.identifiable else ""  # its covariance under-states; the gate holds out turns
     if turn:
         return turn
     gated = gated_verdict(est.gated_frames, est.n_frames_seen, cfg.segment_names(), est.joint_gated_frames)
@@ -283,8 +283,9 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
 def weak_cluster(runner: JointRunner) -> str:
     """A segment whose markers lie so nearly on a line that each frame turns it by over TURN_SD_MAX_DEG (words)."""
     est = runner.estimator
+    noise = est.white_noise_std or est.noise_std  # skin: the markers' own noise (the pooled one holds deformation)
     for side, template, sigma, name in zip(
-        ("parent", "child"), est.templates, est.noise_std, runner.cfg.segment_names(), strict=True
+        ("parent", "child"), est.templates, noise, runner.cfg.segment_names(), strict=True
     ):
         if template is None or not sigma > 0.0:
             continue

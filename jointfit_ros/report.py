@@ -180,7 +180,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["gate_warning"] = warning
     out["units_warning"] = units_warning(run, r)
     out["label_warning"] = "" if run.frames is None else recording_odd_markers(run.cfg, r.cfg, run.frames)
-    out["cluster_warning"] = weak_cluster(r)  # markers nearly on a line: the covariance under-states
+    out["cluster_warning"] = weak_cluster(r) if sol.identifiable else ""  # markers nearly on a line: cov under-states
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}
     out["lever_ratio"] = r.lever_ratios()  # the joint's distance from each marker cluster, in cluster radii
