@@ -118,3 +118,35 @@ def rig_router(**extra: Any) -> tuple[Any, list[Any]]:
     cfg = node_config(fake_rig_values(**extra))
     runners = [JointRunner(j, cfg) for j in cfg.joints]
     return MessageRouter(cfg, runners), runners
+
+
+def diagnostics_status(arrays: list[Any], name: str) -> dict[str, str]:
+    """The latest ``jointfit: <name>`` status of received ``DiagnosticArray``s: level, message and key/values."""
+    for arr in reversed(arrays):
+        for st in arr.status:
+            if st.name == f"jointfit: {name}":
+                level = st.level[0] if isinstance(st.level, bytes) else st.level
+                return {"level": str(level), "message": st.message, **{kv.key: kv.value for kv in st.values}}
+    return {}
+
+
+def stop_processes(procs: list[Any], output_of: Any) -> str:
+    """SIGINT each process of ``procs`` still running, wait for it (killed after 10 s); ``output_of``'s output."""
+    import signal
+    import subprocess
+
+    for proc in procs:
+        if proc is not None and proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    output = ""
+    for proc in procs:
+        if proc is None:
+            continue
+        try:
+            out = proc.communicate(timeout=10)[0]
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out = proc.communicate()[0]
+        if proc is output_of and out:
+            output = out.decode(errors="replace")
+    return output

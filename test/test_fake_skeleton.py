@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import diagnostics_status, stop_processes
 
 from jointfit_core.skeleton_truth import make_skeleton
 from jointfit_ros.conversions import RawPoints, parse_pose_array
@@ -138,12 +139,7 @@ def test_node_runs_the_lower_body_config_with_its_segments_named() -> None:
     node = mocap = jf = None
 
     def status(name: str) -> dict[str, str]:
-        for arr in reversed(diag):
-            for st in arr.status:
-                if st.name == f"jointfit: {name}":
-                    return {"level": str(st.level[0] if isinstance(st.level, bytes) else st.level),
-                            "message": st.message, **{kv.key: kv.value for kv in st.values}}
-        return {}
+        return diagnostics_status(diag, name)
 
     try:
         node = Node("test_lower_body_listener", context=context)
@@ -168,20 +164,7 @@ def test_node_runs_the_lower_body_config_with_its_segments_named() -> None:
             if status("input").get("segments (~/segments order)") and len(hips) >= 20 and len(segments) >= 20:
                 break
     finally:
-        for proc in (mocap, jf):
-            if proc is not None and proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        output = ""
-        for proc in (mocap, jf):
-            if proc is None:
-                continue
-            try:
-                out = proc.communicate(timeout=10)[0]
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                out = proc.communicate()[0]
-            if proc is jf and out:
-                output = out.decode(errors="replace")
+        output = stop_processes([mocap, jf], jf)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown(context=context)

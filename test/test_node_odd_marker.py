@@ -9,7 +9,6 @@ alone.
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -18,6 +17,7 @@ from typing import Any
 
 import pytest
 import yaml
+from helpers import diagnostics_status, stop_processes
 
 pytestmark = pytest.mark.ros
 
@@ -48,12 +48,7 @@ def test_the_node_names_a_marker_listed_under_the_wrong_segment(tmp_path: Path) 
     node = mocap = jf = None
 
     def status(name: str) -> dict[str, str]:
-        for arr in reversed(diag):
-            for st in arr.status:
-                if st.name == f"jointfit: {name}":
-                    level = st.level[0] if isinstance(st.level, bytes) else st.level
-                    return {"level": str(level), "message": st.message}
-        return {}
+        return diagnostics_status(diag, name)
 
     def named() -> bool:
         return all("does not move" in status(j).get("message", "") for j in ("r_hip", "l_hip"))
@@ -79,19 +74,7 @@ def test_the_node_names_a_marker_listed_under_the_wrong_segment(tmp_path: Path) 
         for _ in range(40):  # a few more diagnostics rounds, for the joints that must stay quiet
             executor.spin_once(timeout_sec=0.05)
     finally:
-        for proc in (mocap, jf):
-            if proc is not None and proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for proc in (mocap, jf):
-            if proc is None:
-                continue
-            try:
-                out = proc.communicate(timeout=10)[0]
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                out = proc.communicate()[0]
-            if proc is jf and out:
-                output = out.decode(errors="replace")
+        output = stop_processes([mocap, jf], jf)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
