@@ -71,8 +71,8 @@ class _Segments:
             return (
                 f"marker {marker} does not move with the other markers of {segment}: its distances to {others} "
                 f"vary by up to {o.spread * scale:.0f} mm (sd), theirs by {o.without * scale:.1f} mm; it is on "
-                "another segment or its label is swapped with another marker's: fix the labels or leave it out "
-                "of the segment's markers"
+                "another segment, its label is swapped with another marker's, or it sits on soft tissue that moves "
+                "on its own: fix the labels or leave it out of the segment's markers"
             )
         return ""
 

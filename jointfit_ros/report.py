@@ -335,7 +335,7 @@ def fit_summary(
         "skin artefact dominates" message when it fails (empty otherwise);
         ``units_warning``: :func:`units_warning` (empty when the clusters' size fits the length unit);
         ``label_warning``: a marker of the joint's segments that does not keep its distances to the others
-        (on another segment or its label swapped: :func:`~jointfit_ros.cluster_check.recording_odd_markers`;
+        (on another segment, its label swapped, or on soft tissue: :func:`~jointfit_ros.cluster_check.recording_odd_markers`;
         empty when none); ``cluster_warning``: a segment whose markers lie so nearly on a line that the
         covariance under-states (:func:`~jointfit_ros.joint_diagnostics.weak_cluster`; empty when none).
     """
