@@ -14,6 +14,7 @@ The sums' layout is :mod:`jointfit_core.joint_sums`'.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -29,6 +30,7 @@ from .artefact_sums import (
     hinge_parameters,
 )
 from .hinge_from_sums import PoseSumsAxis, axis_from_pose_sums
+from .joint_fit_check import expected_residual_rms, not_a_joint_reason
 from .joint_sums import (
     _FM,
     _FS,
@@ -334,8 +336,8 @@ def solve_window(request: SolveRequest) -> SolveResult:
     if factor != 1.0:
         sol = _inflated(sol, factor, factor * dt, scale, centre_limit)
     serial = SerialInflation(rho=rho, rho_raw=rho_raw, factor=factor, n_pairs=lag.n_pairs, frame_interval_s=dt)
-    if not skin:
-        return SolveResult(sol, serial, (sigma_p, sigma_c), request.generation, request.version)
+    if not skin:  # rigid markers: the joint residual is the poses' noise, or no joint (skin: the prior's part)
+        return SolveResult(_joint_verdict(sol, Wp, Wc), serial, (sigma_p, sigma_c), request.generation, request.version)
     smooth, rotation_smooth, rotation_ss = 0.0, 0.0, 0.0
     if lags.size:
         smooth = smooth_energy_from_lags(lag_sums, counts, lags, ss, float(sums.n))
@@ -354,6 +356,23 @@ def solve_window(request: SolveRequest) -> SolveResult:
     return SolveResult(
         total, serial, (sigma_p, sigma_c), request.generation, request.version, sol, art.scale, white, art.cluster_motion
     )
+
+
+def _joint_verdict(sol: PoseSumsCentre | PoseSumsAxis, Wp: FloatArray, Wc: FloatArray) -> PoseSumsCentre | PoseSumsAxis:
+    """Rigid markers: an estimate whose joint residual is far beyond the poses' noise, flagged not identifiable.
+
+    :func:`~jointfit_core.joint_fit_check.not_a_joint_reason`: the two segments do not turn about one
+    joint of this kind (a segment between them, the wrong segments, or markers on skin marked rigid); its
+    covariance would be that of a joint.
+    """
+    if not sol.identifiable:
+        return sol
+    if isinstance(sol, PoseSumsCentre):
+        points, kind = (sol.centre_parent, sol.centre_child), "ball"
+    else:
+        points, kind = (sol.point_parent, sol.point_child), "hinge"
+    reason = not_a_joint_reason(float(sol.rms), expected_residual_rms(Wp, Wc, *points), kind)
+    return dataclasses.replace(sol, identifiable=False, reason=reason) if reason else sol
 
 
 def _white_noise(request: SolveRequest, pooled: tuple[float, float]) -> tuple[float, float]:
