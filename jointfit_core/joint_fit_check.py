@@ -80,5 +80,6 @@ def not_a_joint_reason(rms: float, expected: float, kind: str) -> str:
     return (
         f"the two segments do not turn about {what} as rigid bodies: the joint carried by their poses differs by "
         f"{rms:.3g} rms, {rms / expected:.0f} times what their markers' noise gives ({expected:.3g}); are they the "
-        "segments on either side of this joint, with no segment between them? (markers on skin: attachment: skin)"
+        "segments on either side of this joint, with no segment between them? (markers on skin: attachment: skin; "
+        "a configured noise far below the real one reads so too)"
     )
