@@ -289,6 +289,8 @@ class JointTrack:
             self.broke = True
         elif self.fails(score):
             return False
+        if self.fails_in_row:  # back after failures: its score is no frame-to-frame change for the normal score
+            score = float("nan")
         self.pass_one(z, number, score, e, frozen)
         return True
 
