@@ -36,6 +36,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PointStamped, PoseArray, Vector3Stamped
@@ -49,6 +50,7 @@ from jointfit_core.synthetic import TwoSegmentMotion, two_segment_motion
 
 from .conversions import pointcloud2_bytes, pose_array_bytes, stamp_from_ns
 from .fake_skeleton import SkeletonSource
+from .stop_request import StopRequest
 
 __all__ = [
     "RIGS",
@@ -524,12 +526,25 @@ def main(argv: Sequence[str] | None = None) -> None:
         Everything after ``--ros-args`` goes to rclpy.
     """
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.utilities import remove_ros_args
 
     args = [sys.argv[0], *(sys.argv[1:] if argv is None else argv)]
     opts = parse_args(remove_ros_args(args)[1:])
-    rclpy.init(args=args)
+    with StopRequest() as stop:
+        _publish(rclpy, args, opts, stop)
+
+
+def _publish(rclpy: Any, args: list[str], opts: argparse.Namespace, stop: StopRequest) -> None:
+    """Spin the fake mocap until ``--duration`` has passed, ``stop`` is requested (SIGINT, SIGTERM) or rclpy shuts down.
+
+    As the node does (:mod:`jointfit_ros.stop_request`): rclpy's own SIGINT handler raised
+    KeyboardInterrupt wherever the main thread was, once inside an executor Task's constructor,
+    whose ``__del__`` then printed a traceback at exit (a CI run of test_two_subjects, 2026-12-06).
+    """
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = FakeMocapNode(opts)
@@ -537,10 +552,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         # periodic timers when spun without a timeout.
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        if opts.duration > 0.0:
-            executor.spin_until_future_complete(node.done)
-        else:
-            executor.spin()
+        while rclpy.ok() and not stop.requested and not (opts.duration > 0.0 and node.done.done()):
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
