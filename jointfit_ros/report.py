@@ -179,7 +179,8 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["message"] = sol.reason if not sol.identifiable else warning
     out["gate_warning"] = warning
     out["units_warning"] = units_warning(run, r)
-    out["label_warning"] = "" if run.frames is None else recording_odd_markers(run.cfg, r.cfg, run.frames)
+    # the whole recording's frames when kept, else the last 20 s its router sampled (a bag fitted without the report)
+    out["label_warning"] = r.odd_markers() if run.frames is None else recording_odd_markers(run.cfg, r.cfg, run.frames)
     out["cluster_warning"] = weak_cluster(r) if sol.identifiable else ""  # markers nearly on a line: cov under-states
     out["rms_residual"] = float(sol.rms)
     out["noise_sd"] = {"parent": est.noise_std[0], "child": est.noise_std[1]}

@@ -161,3 +161,22 @@ def test_the_real_hip_recording_names_a_swapped_asis_and_nothing_without() -> No
     names = list(cfg.marker_names)
     text = recording_odd_markers(cfg, cfg.joints[0], _swapped(frames, names, "RASIS", "RTHI1"))
     assert "marker RASIS does not move" in text and "marker RTHI1 does not move" in text
+
+
+@pytest.mark.parametrize("keep_frames", [True, False])
+def test_a_bag_fitted_with_or_without_its_frames_names_the_marker(tmp_path: Path, keep_frames: bool) -> None:
+    """``jointfit fit`` of a bag: from the kept frames, or (``--no-report``) from what its router sampled."""
+    from bagtools import write_marker_bag
+
+    from jointfit_ros.offline import run_fit
+    from jointfit_ros.report import fit_summary
+
+    names, _, frames = _skin(0, seconds=25.0)
+    stamps = T0 + np.round(np.arange(frames.shape[0]) / RATE * 1e9).astype(np.int64)
+    bag = write_marker_bag(tmp_path / "swapped", _swapped(frames, names, "PELV1", "RTHI1"), stamps)
+    cfg = node_config(params_from_file(ROOT / "config" / "lower_body.yaml"))
+    run = run_fit(bag, cfg, keep_frames=keep_frames)
+    assert (run.frames is None) != keep_frames
+    joints = {j["name"]: j for j in fit_summary(run, elapsed_s=0.0, version="test")["joints"]}
+    assert "marker PELV1 does not move with the other markers of segment pelvis" in joints["l_hip"]["label_warning"]
+    assert joints["l_ankle"]["label_warning"] == ""
