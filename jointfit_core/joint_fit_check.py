@@ -32,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .pose import lever_jacobian
+
 __all__ = ["NOT_A_JOINT_RATIO", "expected_residual_rms", "not_a_joint_reason"]
 
 FloatArray = NDArray[np.float64]
@@ -45,8 +47,7 @@ NOT_A_JOINT_RATIO = 10.0
 
 def _carried_spread2(W: FloatArray, point: FloatArray) -> float:
     """``tr(J W J^T)``, ``J = [-[p]x, I]``: the mean squared error of a body-fixed point carried by the pose."""
-    x, y, z = point
-    J = np.array([[0.0, z, -y, 1.0, 0.0, 0.0], [-z, 0.0, x, 0.0, 1.0, 0.0], [y, -x, 0.0, 0.0, 0.0, 1.0]])
+    J = lever_jacobian(point)
     return float(np.trace(J @ W @ J.T))
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .hinge_from_sums import PoseSumsAxis
-from .pose import skew
+from .pose import lever_jacobian, skew
 from .segment_tracker import VisibleSet
 from .segments import PoseSumsCentre
 
@@ -135,7 +135,7 @@ class WorldOutput:
                 local, local_cov, other = sol.centre_parent, sol.cov_parent, sol.centre_child
             else:
                 local, local_cov, other = sol.point_parent, sol.cov_point_parent, sol.point_child
-            J = np.concatenate([-skew(local), np.eye(3)], axis=1)
+            J = lever_jacobian(local)
             W = s2 * vp.W_unit
             if motion is not None:
                 W = W + np.diag(motion[0])

@@ -40,6 +40,7 @@ __all__ = [
     "point_covariance_local",
     "pose_noise_local",
     "skew",
+    "lever_jacobian",
     "kabsch",
     "COLLINEAR_RTOL",
 ]
@@ -120,6 +121,24 @@ def skew(v: ArrayLike) -> FloatArray:
     out[..., 1, 2] = -v[..., 0]
     out[..., 2, 0] = -v[..., 1]
     out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def lever_jacobian(point: ArrayLike) -> FloatArray:
+    """``J = [-[p]x, I]`` (3, 6): the error of a body-fixed point ``p`` carried by a pose with local error ``(omega, u)``.
+
+    Parameters
+    ----------
+    point : array_like, shape (3,)
+        The point in the local frame (input units).
+
+    Returns
+    -------
+    ndarray, shape (3, 6)
+        ``J`` such that the point's covariance is ``J W J^T`` for a local pose covariance ``W``
+        (:func:`pose_covariance_local`, Notes).
+    """
+    out: FloatArray = np.concatenate([-skew(point), np.eye(3)], axis=-1)
     return out
 
 
@@ -642,7 +661,7 @@ def point_covariance_local(
     if p.shape != (3,) or not np.isfinite(p).all():
         raise InputError(f"point_local: expected a finite 3-vector, got {point_local!r}")
     cov6 = pose_covariance_local(template, noise_std, visible)
-    J = np.concatenate([-skew(p), np.eye(3)], axis=1)  # (3, 6)
+    J = lever_jacobian(p)
     out: FloatArray = J @ cov6 @ J.T
     return out
 

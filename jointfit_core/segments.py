@@ -42,6 +42,7 @@ from .identifiability import check_marker_counts
 from .model_error import Inflation, residual_inflation
 from .pose import (
     Poses,
+    lever_jacobian,
     noise_std_from_fit,
     point_covariance_local,
     pose_covariance_local,
@@ -278,11 +279,6 @@ def pose_sums_from_relative(Q_parent_child: ArrayLike, t_parent_child: ArrayLike
 # --------------------------------------------------------------------------- helpers
 
 
-def _lever_jacobian(point: FloatArray) -> FloatArray:
-    """``J = [-[p]x, I]`` (3, 6): error of a carried body-fixed point from a local pose error (omega, u)."""
-    return np.concatenate([-skew(point), np.eye(3)], axis=-1)
-
-
 def _spd_inv(W: FloatArray) -> FloatArray:
     """Inverse of a batch of symmetric positive definite matrices, never raising.
 
@@ -490,8 +486,8 @@ def _sums_meat(sums: PoseSums, c_p: FloatArray, c_c: FloatArray, Wp6: FloatArray
     n = float(sums.n)
     S = np.asarray(sums.S)
     K = np.asarray(sums.K)
-    Jp = _lever_jacobian(c_p)
-    Jc = _lever_jacobian(c_c)
+    Jp = lever_jacobian(c_p)
+    Jc = lever_jacobian(c_c)
     W_p = Jp @ Wp6 @ Jp.T
     W_c = Jc @ Wc6 @ Jc.T
     B = np.empty((6, 6))
@@ -856,8 +852,8 @@ def _constraint_cov(
     Q: FloatArray, c_p: FloatArray, c_c: FloatArray, Wp6: FloatArray, Wc6: FloatArray
 ) -> FloatArray:
     """Per-frame covariance (..., 3, 3) of ``h_t = c_p - Q_t c_c - t_t`` in the parent frame."""
-    Jp = _lever_jacobian(c_p)
-    Jc = _lever_jacobian(c_c)
+    Jp = lever_jacobian(c_p)
+    Jc = lever_jacobian(c_c)
     W_p = Jp @ Wp6 @ Jp.T
     W_c = Jc @ Wc6 @ Jc.T
     out: FloatArray = W_p + Q @ W_c @ np.swapaxes(Q, -1, -2)
@@ -966,7 +962,7 @@ def _gauss_markov_centre(
     # Second-order bias of the estimating equation sum M^T W^-1 h under the pose noise (sigma points):
     # with W held at the converged a, psi(a) = A a - b is linear in a, and so is its expected bias
     # dA a - db; the corrected equation (A - dA) a = b - db is solved (see _debiased_weighted).
-    Jp, Jc = _lever_jacobian(a[:3]), _lever_jacobian(a[3:])
+    Jp, Jc = lever_jacobian(a[:3]), lever_jacobian(a[3:])
     W_p = Jp @ Wp6 @ Jp.T
     W_c = Jc @ Wc6 @ Jc.T
     Qx, tx = _sigma_relative_poses(Q, t, noise_p, noise_c)
@@ -1316,7 +1312,7 @@ def fit_centre_two_segments(
         cov = cov * _model_error_inflation(prep, c_p, c_c, Wp6_mean, Wc6_mean).factor
     cov_parent, cov_child = cov[:3, :3], cov[3:, 3:]
     # a frame's centre is carried by the parent cluster's pose, off its bone's by the cluster's motion
-    lever = _lever_jacobian(c_p)
+    lever = lever_jacobian(c_p)
     centre_world, cov_world, residual = _world_outputs(prep, c_p, c_c, cov_parent + (lever * motion) @ lever.T)
     # Identifiability is about the motion: judged on the part of the covariance that more or better
     # movement reduces (the soft-tissue part does not shrink with the data).
