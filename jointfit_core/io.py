@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from .errors import InputError, MissingDependencyError
 
-__all__ = ["MarkerData", "read_c3d", "read_trc", "trc_text", "write_trc"]
+__all__ = ["MarkerData", "marker_name", "read_c3d", "read_trc", "trc_text", "write_trc"]
 
 #: Metres per unit, for :meth:`MarkerData.to_units`.
 _METRES_PER_UNIT: dict[str, float] = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -38,6 +38,11 @@ _TRC_KEYS = (
     "OrigDataStartFrame",
     "OrigNumFrames",
 )
+
+
+def marker_name(label: str) -> str:
+    """A label's marker name: without its subject prefix (``RTHI1`` for Vicon Nexus's ``Subject01:RTHI1``)."""
+    return label.rpartition(":")[2]
 
 
 @dataclass(frozen=True)
@@ -170,7 +175,7 @@ class MarkerData:
         """
         if name in self.labels:
             return name
-        prefixed = [label for label in self.labels if label.rpartition(":")[2] == name and ":" in label]
+        prefixed = [label for label in self.labels if ":" in label and marker_name(label) == name]
         return prefixed[0] if len(prefixed) == 1 else name
 
     def to_units(self, units: str) -> MarkerData:

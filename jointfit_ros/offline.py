@@ -45,7 +45,7 @@ from jointfit_core.block_check import snapshots_consistency, window_consistency
 from jointfit_core.consistency import BlockConsistency
 from jointfit_core.errors import InputError, JointfitError
 from jointfit_core.hinge_from_sums import PoseSumsAxis
-from jointfit_core.io import METRES_PER_UNIT, MarkerData, read_c3d, read_trc
+from jointfit_core.io import METRES_PER_UNIT, MarkerData, marker_name, read_c3d, read_trc
 from jointfit_core.segments import PoseSumsCentre
 
 from .bag import iter_selected_messages, select_topics
@@ -285,39 +285,32 @@ def with_file_marker_names(values: Mapping[str, Any], labels: Sequence[str], sou
         (j, (*_MARKER_LISTS, *_MARKER_NAMES)) for j in (joints if isinstance(joints, list) else [])
     ]
     owners += [(g, ("markers",)) for g in (segments if isinstance(segments, list) else [])]
-    named = [m for joint, keys in owners for key in keys for m in _names_in(out.get(f"{joint}.{key}"))]
-    if any(m not in counts for m in named):  # named without the subject prefix of the labels ("Subject:RTHI1")?
-        plain = Counter(label.rpartition(":")[2] for label in names)
-        names = [label.rpartition(":")[2] if plain[label.rpartition(":")[2]] == 1 else label for label in names]
-        counts.update({name: 1 for name in names if name not in counts})
+    listed: list[tuple[str, list[str]]] = []  # (key, the markers it names)
     for joint, keys in owners:
         for key in keys:
             given = out.get(f"{joint}.{key}")
             wanted = [given] if isinstance(given, str) and given else given
-            if not isinstance(wanted, list) or not all(isinstance(m, str) for m in wanted):
-                continue  # a wrong type: node_config says so
-            for marker in wanted:
-                if counts[marker] > 1:
-                    raise ConfigError(
-                        f"{joint}.{key}: {source} holds the label {marker!r} {counts[marker]} times; "
-                        "markers of one name cannot be told apart"
-                    )
-                if marker not in counts:
-                    close = difflib.get_close_matches(marker, names, n=1, cutoff=0.5)
-                    hint = f"did you mean {close[0]!r}? " if close else ""
-                    raise ConfigError(
-                        f"{joint}.{key}: {marker!r} is not a marker label of {source} ({hint}its labels: "
-                        f"{', '.join(names)})"
-                    )
+            if isinstance(wanted, list) and all(isinstance(m, str) for m in wanted):  # else node_config says so
+                listed.append((f"{joint}.{key}", wanted))
+    if any(m not in counts for _, wanted in listed for m in wanted):  # named without the labels' subject prefix?
+        plain = Counter(marker_name(label) for label in names)
+        names = [marker_name(label) if plain[marker_name(label)] == 1 else label for label in names]
+        counts.update({name: 1 for name in names if name not in counts})
+    for key, wanted in listed:
+        for marker in wanted:
+            if counts[marker] > 1:
+                raise ConfigError(
+                    f"{key}: {source} holds the label {marker!r} {counts[marker]} times; "
+                    "markers of one name cannot be told apart"
+                )
+            if marker not in counts:
+                close = difflib.get_close_matches(marker, names, n=1, cutoff=0.5)
+                hint = f"did you mean {close[0]!r}? " if close else ""
+                raise ConfigError(
+                    f"{key}: {marker!r} is not a marker label of {source} ({hint}its labels: {', '.join(names)})"
+                )
     out["marker_names"] = names
     return out
-
-
-def _names_in(value: Any) -> list[str]:
-    """The marker names a parameter value gives (a name or a list of names; anything else: none)."""
-    if isinstance(value, str):
-        return [value] if value else []
-    return [m for m in value if isinstance(m, str)] if isinstance(value, list) else []
 
 
 def _read_markers(path: Path, kind: str, cfg: NodeConfig, data: MarkerData | None) -> MarkerData:
