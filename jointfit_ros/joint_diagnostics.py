@@ -272,12 +272,35 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
             if cfg.publish_unidentified
             else "no per-frame output until it is"
         )
-        return f"not identifiable ({outputs}): {sol.reason}" + _UNLABELLED_HINT * runner.node.unlabelled
+        return f"not identifiable ({outputs}): {sol.reason}{short_window(runner)}" + _UNLABELLED_HINT * runner.node.unlabelled
     if units:
         return units
     if runner.sign.problem:
         return f"hinge sign convention not honoured: {runner.sign.problem}"
     return runner.consistency.warning(est) if sol.identifiable else ""
+
+
+#: A full window by frame count that spans less than this (s of input) is named when the joint is not
+#: identifiable: at 500 Hz the default 3000 frames hold 6 s, and "record more movement" cannot help.
+SHORT_WINDOW_S = 20.0
+
+
+def short_window(runner: JointRunner) -> str:
+    """Words for a not-identifiable joint whose full frame-count window holds under SHORT_WINDOW_S of input ("" else).
+
+    Measured (lower-body skin skeleton, 20 s at 500 Hz, the default ``window: 3000``): every knee, and
+    most hips and ankles, stayed not identifiable with the advice to record more movement cycles, which
+    the sliding window then drops as fast as they come.
+    """
+    est = runner.estimator
+    frames = est.spec.frames
+    rate = runner.input_rate()
+    if est.frozen or frames is None or est.n_window < frames or not rate > 0.0 or frames / rate >= SHORT_WINDOW_S:
+        return ""
+    return (
+        f"; the window holds only the last {frames} frames ({frames / rate:.3g} s at {rate:.3g} Hz), so recording "
+        "longer adds no movement to it: lengthen it (window, in frames, or window_s, in seconds)"
+    )
 
 
 def weak_cluster(runner: JointRunner) -> str:
