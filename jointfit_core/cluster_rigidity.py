@@ -13,10 +13,11 @@ skeleton with PELV1 and RTHI1 swapped: the left hip 27-31 mm off at e/3 0.5-0.65
 status OK; the right hip "not identifiable").
 
 The pairwise distances can say it. For every segment of at least three markers,
-the standard deviation over frames of every pair's distance is taken; the
-marker whose removal leaves the rest most rigid is *odd* when the segment's
-largest pair sd is at least :data:`ODD_RATIO` times what is left without it, and
-at least ``floor`` (a still stance or a rigid cluster's noise never is).
+the standard deviation over frames of every pair's distance is taken (its
+glitches left out: :data:`GLITCH_MADS`); the marker whose removal leaves the
+rest most rigid is *odd* when the segment's largest pair sd is at least
+:data:`ODD_RATIO` times what is left without it, and at least ``floor`` (a
+still stance or a rigid cluster's noise never is).
 
 Measured (``skeleton_skin_frames``, lower body, 30 s, seeds 0-1), as the largest pair
 sd with all markers against without the odd candidate:
@@ -38,13 +39,14 @@ sd with all markers against without the odd candidate:
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["ODD_RATIO", "ClusterPairs", "ClusterRigidity", "OddMarker", "odd_markers"]
+__all__ = ["GLITCH_MADS", "ODD_RATIO", "ClusterPairs", "ClusterRigidity", "OddMarker", "odd_markers"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -54,6 +56,11 @@ IntArray = NDArray[np.intp]
 ODD_RATIO = 3.0
 #: Fewest frames with both markers of a pair seen for its sd to count.
 MIN_PAIR_FRAMES = 100
+#: A pair's distance farther than this many robust sds (1.4826 MAD) from its median is a glitch, left out of its
+#: sd: a corrupt value (a driver's 1e7 for a lost marker named the marker as not moving with its segment), a
+#: ghost or a few frames' swap. A marker's distance that follows the joint angle, or the skin's deformation,
+#: stays within ~1.5 of them (a sinusoid's extremes), and a rigid pair's noise within ~5.
+GLITCH_MADS = 10.0
 
 
 @dataclass(frozen=True)
@@ -141,6 +148,14 @@ class ClusterPairs:
             Input units.
         """
         seen = np.isfinite(distances)
+        if seen.any():  # glitches (a ghost, a few frames' swap, a corrupt value) are not the pair's spread
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # (all-NaN pairs: NaN, left out below)
+                med = np.nanmedian(distances, axis=0)
+                off = np.abs(distances - med)
+                mad = np.nanmedian(off, axis=0)
+            with np.errstate(invalid="ignore"):
+                seen &= off <= GLITCH_MADS * 1.4826 * mad
         n = seen.sum(axis=0)
         d = np.where(seen, distances, 0.0)
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -87,6 +87,33 @@ def test_rigid_clusters_name_a_swap_at_the_rigid_floor_and_nothing_without() -> 
     assert _named(names, segments, _swapped(frames, names, "RUPA2", "RFRA2"), floor) == {"RUPA2", "RFRA2"}
 
 
+@pytest.mark.parametrize("kind", ["corrupt", "ghost"])
+def test_glitches_of_one_marker_name_nothing_and_hide_no_swap(kind: str) -> None:
+    """A marker's rare glitches are not its segment's spread: nothing named, and a real swap still is.
+
+    Before 2026-12-07, one frame in a hundred with a corrupt coordinate (a driver's 2e7) named that marker as
+    not moving with its segment ("on another segment, or its label swapped"), on rigid and skin clusters
+    alike; so did a ghost 60 mm away in 3 % of the frames on a rigid cluster.
+    """
+    rng = np.random.default_rng(3)
+    sk = make_skeleton("lower", seed=3)
+    names = sk.marker_names()
+    frames = skeleton_frames(sk, np.arange(2000) / RATE, rng, 0.0005, 0.02)
+    segments = [[names.index(m) for m in s.marker_names] for s in sk.segments]
+    bad = frames.copy()
+    row = names.index("RTHI2")
+    if kind == "corrupt":
+        at = np.arange(7, 2000, 100)
+        bad[at, row, 1] = 2.4e7
+    else:
+        at = rng.choice(2000, 60, replace=False)
+        bad[at, row] += rng.normal(0.0, 1.0, (at.size, 3)) * 0.06 / np.sqrt(3.0)
+    for floor in (ODD_FLOOR_MM["rigid"] / 1000.0, SKIN_FLOOR):
+        assert _named(names, segments, bad, floor) == set()
+    floor = ODD_FLOOR_MM["rigid"] / 1000.0
+    assert _named(names, segments, _swapped(bad, names, "PELV1", "RTHI1"), floor) == {"PELV1", "RTHI1"}
+
+
 def test_a_still_stance_names_nothing() -> None:
     names, segments, frames = _skin(0)
     still = np.repeat(frames[:1], 1500, axis=0) + np.random.default_rng(0).normal(0.0, 0.0005, (1500, *frames.shape[1:]))
