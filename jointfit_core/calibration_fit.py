@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from .hinge_from_sums import PoseSumsAxis
 from .joint_gate import JointResidual
-from .pose import lever_jacobian, skew
+from .joint_misfit import misfit_statistic
 from .segments import PoseSumsCentre
 
 if TYPE_CHECKING:
@@ -107,7 +107,7 @@ class CalibrationFit:
         self._count = [0, 0]
         self._misfit = ["", ""]
         self._joint_misfit = ""
-        self._solution: object = None
+        self._solution: PoseSumsCentre | PoseSumsAxis | None = None
         self._residual: JointResidual | None = None
         self._joint_count = 0
         self._e_mean = np.zeros(0)
@@ -253,37 +253,13 @@ class CalibrationFit:
         lag-10 share reads only part of that.
         """
         sol = self._solution
+        assert sol is not None
         m = self._e_mean
         scatter = self._e_sq - np.outer(m, m)  # the residual's per-frame covariance
         var = float(np.trace(scatter))
         slow = min(max(float(np.trace(self._e_lag - np.outer(m, m))) / var, 0.0), 1.0) if var > 0.0 else 1.0
         f = slow + (1.0 - slow) / JOINT_MISFIT_FRAMES if self._rigid else 1.0
-        Qm = self._q_mean
-        W = self._noise_w
-        if isinstance(sol, PoseSumsAxis):
-            u = res.u
-            P = np.eye(3) - np.outer(u, u)
-            Nx = skew(u)
-            # the turn across the axis only: along it, ``Q a_c - a_p`` is of second order (the pose noise's
-            # shrinking of ``Q a_c``, a bias with next to no scatter, that no direction error causes)
-            turn = res.length**2 * P @ (Qm @ sol.cov_direction_child @ Qm.T + sol.cov_direction_parent
-                                         + Nx @ W[:3, :3] @ Nx.T) @ P  # fmt: skip
-            Jp = lever_jacobian(sol.point_parent)
-            across = P @ (Qm @ sol.cov_point_child @ Qm.T + sol.cov_point_parent + Jp @ W @ Jp.T) @ P
-            blocks = [(slice(0, 3), turn, 2), (slice(3, 6), across, 2)]
-        else:
-            assert isinstance(sol, PoseSumsCentre)
-            J = np.concatenate([-np.eye(3), Qm], axis=1)
-            Jp = lever_jacobian(sol.centre_parent)
-            blocks = [(slice(0, 3), J @ sol.cov @ J.T + Jp @ W @ Jp.T, 3)]
-            P = np.eye(3)
-        worst = 0.0
-        for sl, cov, dof in blocks:
-            C = P @ (cov + f * scatter[sl, sl]) @ P
-            v = P @ m[sl]
-            stat = float(v @ np.linalg.pinv(C, rcond=1e-10, hermitian=True) @ v) / dof
-            worst = max(worst, stat)
-        return worst
+        return misfit_statistic(sol, res, m, f * scatter, self._q_mean, self._noise_w)
 
     def add_frame(self, ss: FloatArray, ps: PairSet, sigma: tuple[float, float]) -> bool:
         """One frame's posed segments (:meth:`add` of each); whether the markers no longer fit (:attr:`problem`).

@@ -1,0 +1,154 @@
+"""Whether a joint's recent frames still agree with its estimate: the joint residual's recent mean, judged.
+
+Pure numpy. Two users:
+
+* :class:`~jointfit_core.calibration_fit.CalibrationFit`, while a joint is frozen: a calibration reused
+  after a cluster was put back elsewhere on its bone (:func:`misfit_statistic`);
+* :class:`JointDrift`, while a joint on rigid markers estimates: a cluster bumped on its bone in the
+  session. The window then holds frames of two placements. Its estimate stays with the older ones
+  for seconds, and every output is off by the move at the covariance of the old estimate. Measured
+  on the rigid rigs (``two_segment_motion``, window 3000 frames at 100 Hz, 3 seeds, the parent plate
+  moved at 30 s): over the next 10 s, a 10 mm move gave outputs at mean e/3 12-25 (hinge point e/2
+  24-41), a 3 mm move 3.4-6.4. The joint test scores only sudden changes against the frames' noise
+  at the joint (~4 mm there), so it let both through, and nothing was said.
+
+The recent mean ``m`` of the joint residual (:func:`~jointfit_core.joint_gate.joint_residuals`: the
+joint carried by the parent against the one carried by the child, parent frame) is zero under the
+joint's estimate, to within what the estimate's covariance and the frames' noise allow. A cluster
+moved on its bone moves ``m`` by about the move, and every output by as much: judged against the
+estimate's covariance of ``m`` and the parent's pose noise at the joint (the outputs' own), its
+chi-square per degree of freedom reads about the outputs' e/k.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .hinge_from_sums import PoseSumsAxis
+from .joint_gate import JointResidual
+from .pose import lever_jacobian, skew
+from .segments import PoseSumsCentre
+
+__all__ = ["DRIFT_FRAMES", "DRIFT_LIMIT", "JointDrift", "misfit_statistic"]
+
+FloatArray = NDArray[np.float64]
+
+#: Frames the recent mean of :class:`JointDrift` is taken over (1 s at 100 Hz), judged every tenth of them.
+DRIFT_FRAMES = 100
+#: :class:`JointDrift`'s limit on the recent mean's chi-square per degree of freedom (rigid markers): as the
+#: frozen calibration's (:data:`~jointfit_core.calibration_fit.JOINT_MISFIT_RATIO`), about the outputs' e/k.
+DRIFT_LIMIT = 3.0
+
+
+def misfit_statistic(
+    sol: PoseSumsCentre | PoseSumsAxis,
+    res: JointResidual,
+    mean: FloatArray,
+    mean_cov: FloatArray,
+    q_mean: FloatArray,
+    noise_w: FloatArray,
+) -> float:
+    """The joint residual's recent mean against what the estimate allows: chi-square per degree of freedom.
+
+    Parameters
+    ----------
+    sol : PoseSumsCentre or PoseSumsAxis
+        The estimate the residuals were taken under.
+    res : JointResidual
+        Its joint residual (:attr:`JointTrack.residual <jointfit_core.joint_gate.JointTrack.residual>`).
+    mean : ndarray, shape (6,)
+        The recent mean residual (ball: the last three entries zero; input units).
+    mean_cov : ndarray, shape (6, 6)
+        The mean's own noise covariance (the frames' scatter over their effective count).
+    q_mean : ndarray, shape (3, 3)
+        The recent mean relative rotation ``Q`` (child template frame to parent template frame).
+    noise_w : ndarray, shape (6, 6)
+        The parent's recent per-frame pose covariance ``sigma^2 W`` (local frame).
+
+    Returns
+    -------
+    float
+        The largest over the residual's blocks (ball: the centre, 3 dof; hinge: the turn across the
+        axis and the point across it, 2 dof each) of ``m^T C^+ m / dof``.
+
+    Notes
+    -----
+    ``C = J cov J^T + N + mean_cov``: the estimate's covariance of ``m`` (``J`` its derivative by the
+    parent's and the child's estimate), the parent's per-frame pose noise at the joint ``N`` (the part
+    of a published output's covariance that is not the estimate's), and the mean's own noise. Stoddart
+    et al. (1999), eq. 14, is the joint residual's linearisation this carries.
+    """
+    Qm, W = q_mean, noise_w
+    if isinstance(sol, PoseSumsAxis):
+        u = res.u
+        P = np.eye(3) - np.outer(u, u)
+        Nx = skew(u)
+        # the turn across the axis only: along it, ``Q a_c - a_p`` is of second order (the pose noise's
+        # shrinking of ``Q a_c``, a bias with next to no scatter, that no direction error causes)
+        turn = res.length**2 * P @ (Qm @ sol.cov_direction_child @ Qm.T + sol.cov_direction_parent
+                                     + Nx @ W[:3, :3] @ Nx.T) @ P  # fmt: skip
+        Jp = lever_jacobian(sol.point_parent)
+        across = P @ (Qm @ sol.cov_point_child @ Qm.T + sol.cov_point_parent + Jp @ W @ Jp.T) @ P
+        blocks = [(slice(0, 3), turn, 2), (slice(3, 6), across, 2)]
+    else:
+        J = np.concatenate([-np.eye(3), Qm], axis=1)
+        Jp = lever_jacobian(sol.centre_parent)
+        blocks = [(slice(0, 3), J @ sol.cov @ J.T + Jp @ W @ Jp.T, 3)]
+        P = np.eye(3)
+    worst = 0.0
+    for sl, cov, dof in blocks:
+        C = P @ (cov + mean_cov[sl, sl]) @ P
+        v = P @ mean[sl]
+        worst = max(worst, float(v @ np.linalg.pinv(C, rcond=1e-10, hermitian=True) @ v) / dof)
+    return worst
+
+
+class JointDrift:
+    """While a joint on rigid markers estimates: do its last :data:`DRIFT_FRAMES` frames agree with the estimate?
+
+    Attributes
+    ----------
+    ratio : float
+        The latest :func:`misfit_statistic` (NaN: not judged since the last :meth:`restart`).
+    """
+
+    def __init__(self) -> None:
+        self._e = np.zeros((DRIFT_FRAMES, 6))
+        self._q = np.zeros((DRIFT_FRAMES, 3, 3))
+        self._w = np.zeros((DRIFT_FRAMES, 6, 6))
+        self.restart()
+
+    def restart(self) -> None:
+        """Forget the frames (a new window, a freeze, a thaw)."""
+        self._n = 0
+        self.ratio = math.nan
+
+    def add(self, z: FloatArray, e: FloatArray, noise_w: FloatArray) -> None:
+        """One frame that passed the joint test: its ``[Q | t]`` (3, 4), joint residual ``e`` (6,) and parent ``sigma^2 W`` (6, 6)."""
+        k = self._n % DRIFT_FRAMES
+        self._e[k] = e
+        self._q[k] = z[:, :3]
+        self._w[k] = noise_w
+        self._n += 1
+
+    def judge(self, sol: PoseSumsCentre | PoseSumsAxis | None, res: JointResidual | None) -> bool:
+        """Every tenth frame once :data:`DRIFT_FRAMES` are in: whether the recent mean is beyond :data:`DRIFT_LIMIT`.
+
+        The mean's own noise is the frames' white part only, read from their first differences
+        (``cov(e_k - e_{k-1}) / 2``, over :data:`DRIFT_FRAMES`): a cluster that moved within these
+        frames is a step, which would swell their scatter about the mean and hide itself.
+        """
+        n = self._n
+        if sol is None or res is None or n < DRIFT_FRAMES or n % (DRIFT_FRAMES // 10):
+            return False
+        k = n % DRIFT_FRAMES
+        e = np.roll(self._e, -k, axis=0)  # oldest first
+        d = np.diff(e, axis=0)
+        white = 0.5 * (d.T @ d) / d.shape[0]
+        self.ratio = misfit_statistic(
+            sol, res, e.mean(axis=0), white / DRIFT_FRAMES, self._q.mean(axis=0), self._w.mean(axis=0)
+        )
+        return self.ratio > DRIFT_LIMIT
