@@ -61,6 +61,12 @@ BROKE_TEXT = (
     "estimating afresh: the two segments' relative pose changed for good (labels swapped between segments, a "
     "cluster moved on its bone, another subject), so the frames before were forgotten"
 )
+#: Said while a joint whose window restarted after its recent frames disagreed with its estimate
+#: (:attr:`OnlineJoint.joint_drifts <jointfit_core.estimator.OnlineJoint.joint_drifts>`) has no estimate again.
+DRIFT_TEXT = (
+    "estimating afresh: the joint's recent frames disagreed with its estimate (a cluster moved on its bone: "
+    "bumped, or slipped on its strap), so the frames before were forgotten"
+)
 
 
 def _largest_sd(cov: FloatArray) -> float:
@@ -113,8 +119,9 @@ def joint_status(runner: JointRunner) -> tuple[Status, bool]:
     sol = est.solution
     if sol is None:
         msg = runner.odd_markers() or runner.waiting() or runner.last_error or "collecting frames"
-        if est.joint_breaks and not runner.waiting():
-            msg = f"{BROKE_TEXT}; {msg}"
+        if (est.joint_breaks or est.joint_drifts) and not runner.waiting():
+            drifted = est.joint_drifts and (not est.joint_breaks or est.joint_drifts[-1] > est.joint_breaks[-1])
+            msg = f"{DRIFT_TEXT if drifted else BROKE_TEXT}; {msg}"
         return Status(WARN if est.n_frames_seen else STALE, msg, values), False
     u = runner.node.units
     units = unit_problem(est.length_scale, u)
@@ -172,6 +179,7 @@ def _input_values(runner: JointRunner) -> dict[str, Any]:
     for side, n in zip(("parent", "child"), est.relabelled_frames, strict=True):
         values[f"{side} swapped labels put right (frames)"] = n
     values["joint broke for good (times)"] = len(est.joint_breaks)
+    values["cluster moved on its bone (times)"] = len(est.joint_drifts)
     if runner.loaded_from:
         values["calibration loaded from"] = runner.loaded_from
     if runner.calib.load_problem:
@@ -265,6 +273,13 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
             "its two segments' relative pose changed at once and stayed so; the estimate is of the frames since. "
             "If a tracker swapped this segment's labels with another cluster's (the two thighs), it is another "
             "joint's; check the labels (~/reset clears this)"
+        )
+    if est.joint_drifts:  # a cluster bumped on its bone (rigid markers): the estimate is of the frames since
+        return (
+            f"the joint's recent frames disagreed with its estimate {len(est.joint_drifts)} time(s), the last at "
+            f"frame {est.joint_drifts[-1]}: a cluster moved on its bone (bumped, or slipped on its strap), so the "
+            "window restarted there and the estimate is of the frames since; a calibration saved before is of "
+            "the old placement (~/reset clears this)"
         )
     if not sol.identifiable:
         outputs = (

@@ -166,6 +166,7 @@ def _joint_summary(run: FitRun, trace: JointTrace, geos: Mapping[str, SegmentGeo
     out["gated"] = gated_share(r)
     out["relabelled"] = dict(zip(("parent", "child"), est.relabelled_frames, strict=True))
     out["joint_breaks"] = list(est.joint_breaks)  # frames where the joint broke for good and the window restarted
+    out["joint_drifts"] = list(est.joint_drifts)  # frames where a cluster moved on its bone and the window restarted
     if r.cfg.type == "hinge":
         out["axis_points"] = r.axis_words()
     if sol is None:
