@@ -132,7 +132,7 @@ def blocks_consistency(est: OnlineJoint, block_sums: Sequence[FloatArray], *, un
         return ball_consistency(
             np.array([s.centre_parent for s in balls]).reshape(-1, 3),
             np.array([s.cov_parent for s in balls]).reshape(-1, 3, 3),
-            frames=frames, n_skipped=skipped, units=units,
+            frames=frames, n_skipped=skipped, units=units, rigid="skin" not in est.attachment,
         )
     axes = [s for s in sols if isinstance(s, PoseSumsAxis)]
     return hinge_consistency(
@@ -140,7 +140,7 @@ def blocks_consistency(est: OnlineJoint, block_sums: Sequence[FloatArray], *, un
         np.array([s.cov_direction_parent for s in axes]).reshape(-1, 3, 3),
         np.array([s.point_parent for s in axes]).reshape(-1, 3),
         np.array([s.cov_point_parent for s in axes]).reshape(-1, 3, 3),
-        frames=frames, n_skipped=skipped, units=units,
+        frames=frames, n_skipped=skipped, units=units, rigid="skin" not in est.attachment,
     )
 
 

@@ -32,6 +32,7 @@ __all__ = [
     "CONSISTENCY_BLOCKS",
     "MIN_BLOCKS",
     "ARTEFACT_VERDICT",
+    "RIGID_CAUSES",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -177,15 +178,25 @@ def _none(kind: str, positions: FloatArray, directions: FloatArray | None, frame
                             math.nan, 0, math.nan, math.nan, math.nan, math.nan, None, why)
 
 
-def _verdict(k: int, chi2: float, dof: int, spread: str, alpha: float) -> tuple[bool, float, float, str]:
+#: What the failing verdict adds for markers marked rigid, per joint kind: the causes there besides skin.
+RIGID_CAUSES = (
+    "; with attachment rigid that is markers on skin (set attachment: skin), a cluster or marker that moved on "
+    "its bone during the recording (bumped, re-taped: the blocks before and after it disagree), or a joint that "
+    "is not {what}"
+)
+
+
+def _verdict(
+    k: int, chi2: float, dof: int, spread: str, alpha: float, rigid: bool, what: str
+) -> tuple[bool, float, float, str]:
     p = float(chi2_dist.sf(chi2, dof))
     ratio = math.sqrt(chi2 / dof)
     numbers = f"chi2 {chi2:.3g} on {dof} dof, p {p:.2g}"
     if p >= alpha:
         return True, p, ratio, f"consistent: the {k} movement blocks' {spread}, {ratio:.2g} times their sd ({numbers})"
     return False, p, ratio, (
-        f"{ARTEFACT_VERDICT}: the {k} movement blocks' {spread}, {ratio:.2g} times what their covariances "
-        f"allow ({numbers})"
+        f"{ARTEFACT_VERDICT}{' or a cluster moved' if rigid else ''}: the {k} movement blocks' {spread}, "
+        f"{ratio:.2g} times what their covariances allow ({numbers})" + (RIGID_CAUSES.format(what=what) if rigid else "")
     )
 
 
@@ -197,6 +208,7 @@ def ball_consistency(
     n_skipped: int = 0,
     units: str = "",
     alpha: float = CONSISTENCY_ALPHA,
+    rigid: bool = False,
 ) -> BlockConsistency:
     """Do K blocks' ball-joint centres agree within their covariances?
 
@@ -214,6 +226,8 @@ def ball_consistency(
         Input units, for the message.
     alpha : float
         False-alarm probability of the verdict.
+    rigid : bool
+        The markers are marked rigid: the failing verdict names the causes there too (:data:`RIGID_CAUSES`).
 
     Returns
     -------
@@ -252,7 +266,7 @@ def ball_consistency(
     dof = 3 * (k - 1)
     spread = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
     unit = f" {units}" if units else ""
-    ok, p, ratio, msg = _verdict(k, chi2, dof, f"centres spread by {spread:.3g}{unit} rms", alpha)
+    ok, p, ratio, msg = _verdict(k, chi2, dof, f"centres spread by {spread:.3g}{unit} rms", alpha, rigid, "a ball joint")
     return BlockConsistency("ball", k, n_skipped, x, None, f, chi2, dof, p, ratio, spread, math.nan, ok, msg)
 
 
@@ -273,6 +287,7 @@ def hinge_consistency(
     n_skipped: int = 0,
     units: str = "",
     alpha: float = CONSISTENCY_ALPHA,
+    rigid: bool = False,
 ) -> BlockConsistency:
     """Do K blocks' hinge axes agree within their covariances?
 
@@ -286,7 +301,7 @@ def hinge_consistency(
         A point of each block's axis (parent frame, input units).
     cov_points : array_like, shape (K, 3, 3)
         Their covariances, input units squared.
-    frames, n_skipped, units, alpha
+    frames, n_skipped, units, alpha, rigid
         As for :func:`ball_consistency`.
 
     Returns
@@ -344,7 +359,7 @@ def hinge_consistency(
     spread = float(np.sqrt(np.mean(np.sum(rp**2, axis=1))))
     unit = f" {units}" if units else ""
     ok, pv, ratio, msg = _verdict(
-        k, chi2, dof, f"axes spread by {spread_deg:.3g} deg and {spread:.3g}{unit} rms", alpha
+        k, chi2, dof, f"axes spread by {spread_deg:.3g} deg and {spread:.3g}{unit} rms", alpha, rigid, "a hinge"
     )
     return BlockConsistency("hinge", k, n_skipped, p, u, f, chi2, dof, pv, ratio, spread, spread_deg, ok, msg)
 

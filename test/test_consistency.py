@@ -17,7 +17,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jointfit_core.block_check import block_bounds, snapshots_consistency, window_consistency
-from jointfit_core.consistency import ARTEFACT_VERDICT, CONSISTENCY_ALPHA, ball_consistency, hinge_consistency
+from jointfit_core.consistency import (
+    ARTEFACT_VERDICT,
+    CONSISTENCY_ALPHA,
+    RIGID_CAUSES,
+    ball_consistency,
+    hinge_consistency,
+)
 from jointfit_core.errors import InputError
 from jointfit_core.estimator import OnlineJoint
 from jointfit_core.io import MarkerData, write_trc
@@ -167,6 +173,18 @@ def _skin_trial(seed: int, kind: str, mm: float, attachment: str, *, per_block: 
     return est
 
 
+def test_the_verdict_names_a_moved_cluster_only_for_markers_marked_rigid() -> None:
+    centres = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    covs = np.stack([np.eye(3)] * 2)
+    skin, rigid = (ball_consistency(centres, covs, units="mm", rigid=r) for r in (False, True))
+    assert skin.warns and rigid.warns and skin.chi2 == rigid.chi2
+    assert skin.message.startswith(f"{ARTEFACT_VERDICT}: ") and "moved on its bone" not in skin.message
+    assert rigid.message.startswith(ARTEFACT_VERDICT) and rigid.message.endswith(RIGID_CAUSES.format(what="a ball joint"))
+    u = np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]])
+    hinge = hinge_consistency(u, np.stack([np.diag([1e-4, 1e-4, 0.0])] * 2), centres, covs, rigid=True)
+    assert hinge.warns and hinge.message.endswith(RIGID_CAUSES.format(what="a hinge"))
+
+
 def test_artefact_changing_between_blocks_warns() -> None:
     # A hip whose thigh cluster moves differently in each movement block, with the covariance of rigid
     # markers: the blocks' centres disagree by centimetres against millimetre covariances.
@@ -285,6 +303,9 @@ def test_fit_reports_the_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert check["spread"] > 5.0 and check["ratio"] > 3.0 and check["dof"] == 3 * (check["blocks"] - 1)
     assert joint["consistency_warning"].startswith(ARTEFACT_VERDICT)
     assert f"WARNING: {ARTEFACT_VERDICT}" in stdout
+    # markers marked rigid: the verdict names the causes there too (before 2026-12-07 it blamed the skin alone,
+    # also for a rigid plate bumped 10 mm mid-recording, /work/notes/offline_bump.py)
+    assert "a cluster or marker that moved on its bone during the recording" in joint["consistency_warning"]
     code, joint, stdout = results["skin"]
     assert code == 0 and joint["consistency"]["consistent"] is not None
 
