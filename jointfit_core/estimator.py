@@ -409,6 +409,10 @@ class OnlineJoint(JointSegments):
             self._stats.chained = False
         if ps.parent is None or self._solution is None:
             return None
+        if self._drift is not None and self._drift.holding and not self._frozen and self._drift_generation == self._generation:
+            # the recent frames disagree with the estimate (jointfit_core.joint_misfit.JointDrift): held, not yet a drift
+            self._drop("recent_frames_disagree")
+            return None
         child_pose = (R[1], d[1], ps.child) if ps.child is not None else None
         return self._outputs.output(
             self._solution, self._sigma, R[0], d[0], ps.parent, child_pose, self._cluster_motion
@@ -451,6 +455,7 @@ class OnlineJoint(JointSegments):
             self.joint_drifts.append(frame_no)
             JointEstimate.reset(self)
             self._installed()
+            drift.restart()
 
     def hold_until_judged(self) -> None:
         """A frozen calibration from another session: no output until its markers have been judged against it.

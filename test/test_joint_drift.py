@@ -69,15 +69,17 @@ def _run(
 
 @pytest.mark.parametrize("kind", ["ball", "hinge"])
 @pytest.mark.parametrize("shift", [3.0, 10.0])
-def test_a_bumped_plate_restarts_the_window_within_a_second(kind: str, shift: float) -> None:
+def test_a_bumped_plate_restarts_the_window_within_two_seconds(kind: str, shift: float) -> None:
     est, e = _run(kind, shift, 0)
     bump = round(BUMP_S * RATE)
-    assert len(est.joint_drifts) == 1 and bump < est.joint_drifts[0] <= bump + DRIFT_FRAMES, est.joint_drifts
+    assert len(est.joint_drifts) == 1 and bump < est.joint_drifts[0] <= bump + 2 * DRIFT_FRAMES, est.joint_drifts
+    assert est.dropped["recent_frames_disagree"] == DRIFT_FRAMES  # held until the second mean confirmed it
     assert est.joint_breaks == []
     assert float(np.mean(e["before"])) < 1.5 and float(np.mean(e["later"])) < 1.5
     # the frames between the move and its verdict (a mean over DRIFT_FRAMES) go out wrong; the new window's are
     # honest, and it is identifiable again at once (rigid markers). Without the check the 10 s after the move
-    # read e/k 8-44 in these four cases; with it 1.7-5.5, all of it from the frames before the verdict.
+    # read e/k 8-44 in these four cases; with it 1.6-5.9, all of it from the frames before the first mean
+    # beyond the limits (20-50 frames after the move).
     frames = np.asarray(e["frames"])
     ek = np.concatenate([e["before"], e["after"], e["later"]])
     since = ek[frames > est.joint_drifts[0]]
@@ -90,6 +92,7 @@ def test_a_bumped_plate_restarts_the_window_within_a_second(kind: str, shift: fl
 def test_an_untouched_rig_never_drifts(kind: str, seed: int) -> None:
     est, e = _run(kind, 0.0, seed, seconds=60.0)
     assert est.joint_drifts == [] and len(e["before"]) + len(e["after"]) + len(e["later"]) > 5900
+    assert "recent_frames_disagree" not in est.dropped
 
 
 def test_a_joint_that_is_not_quite_a_hinge_is_not_taken_for_a_bump() -> None:
@@ -112,7 +115,7 @@ def test_a_joint_that_is_not_quite_a_hinge_is_not_taken_for_a_bump() -> None:
     d_c = joint - np.einsum("nij,j->ni", R_c, motion.centre_child)
     markers = markers_from_poses((R_p, d_p, R_c, d_c), motion.template_parent, motion.template_child)
     est, _ = _run("hinge", 0.0, 0, markers=markers)
-    assert est.joint_drifts == []
+    assert est.joint_drifts == [] and "recent_frames_disagree" not in est.dropped
     assert est._drift is not None and est._drift.ratio > 3.0 * 2  # (its recent mean did read far beyond the limit)
 
 
