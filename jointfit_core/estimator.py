@@ -450,7 +450,7 @@ class OnlineJoint(JointSegments):
             drift.restart()
             self._drift_generation = self._generation
         z, e = self._joint.latest
-        drift.add(z, e, self._sigma[0] ** 2 * ps.parent.W_unit)
+        drift.add(z, e, ps.parent.W_unit, self._sigma[0] ** 2)
         if drift.judge(self._solution, self._joint.residual):
             self.joint_drifts.append(frame_no)
             JointEstimate.reset(self)

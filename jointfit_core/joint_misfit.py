@@ -40,8 +40,8 @@ __all__ = ["DRIFT_FRAMES", "DRIFT_LIMIT", "JointDrift", "misfit_statistic"]
 
 FloatArray = NDArray[np.float64]
 
-#: Frames the recent mean of :class:`JointDrift` is taken over (1 s at 100 Hz), judged every tenth of them.
-DRIFT_FRAMES = 100
+#: Frames the recent mean of :class:`JointDrift` is taken over (1 s at 100 Hz), and how often it is judged.
+DRIFT_FRAMES, DRIFT_EVERY = 100, 25
 #: :class:`JointDrift`'s limit on the recent mean's chi-square per degree of freedom (rigid markers): as the
 #: frozen calibration's (:data:`~jointfit_core.calibration_fit.JOINT_MISFIT_RATIO`), about the outputs' e/k.
 DRIFT_LIMIT = 3.0
@@ -95,27 +95,38 @@ def misfit_statistic(
     Qm, W = q_mean, noise_w
     if isinstance(sol, PoseSumsAxis):
         u = res.u
-        P = np.eye(3) - np.outer(u, u)
+        B = _plane(u)  # (2, 3): the plane across the axis, where both blocks are judged
         Nx = skew(u)
         # the turn across the axis only: along it, ``Q a_c - a_p`` is of second order (the pose noise's
         # shrinking of ``Q a_c``, a bias with next to no scatter, that no direction error causes)
-        turn = res.length**2 * P @ (Qm @ sol.cov_direction_child @ Qm.T + sol.cov_direction_parent
-                                     + Nx @ W[:3, :3] @ Nx.T) @ P  # fmt: skip
+        turn = res.length**2 * (Qm @ sol.cov_direction_child @ Qm.T + sol.cov_direction_parent + Nx @ W[:3, :3] @ Nx.T)
         Jp = lever_jacobian(sol.point_parent)
-        across = P @ (Qm @ sol.cov_point_child @ Qm.T + sol.cov_point_parent + Jp @ W @ Jp.T) @ P
-        blocks = [(slice(0, 3), turn, 2), (slice(3, 6), across, 2)]
+        across = Qm @ sol.cov_point_child @ Qm.T + sol.cov_point_parent + Jp @ W @ Jp.T
+        worst = np.zeros(mean.shape[:-1])
+        for sl, cov in ((slice(0, 3), turn), (slice(3, 6), across)):
+            C = B @ (cov + mean_cov[sl, sl]) @ B.T
+            v = mean[..., sl] @ B.T
+            det = C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0]
+            quad = C[1, 1] * v[..., 0] ** 2 - 2.0 * C[0, 1] * v[..., 0] * v[..., 1] + C[0, 0] * v[..., 1] ** 2
+            worst = np.maximum(worst, np.where(det > 0.0, quad / np.where(det > 0.0, det, 1.0), np.inf) / 2.0)
     else:
         J = np.concatenate([-np.eye(3), Qm], axis=1)
         Jp = lever_jacobian(sol.centre_parent)
-        blocks = [(slice(0, 3), J @ sol.cov @ J.T + Jp @ W @ Jp.T, 3)]
-        P = np.eye(3)
-    worst = np.zeros(mean.shape[:-1])
-    for sl, cov, dof in blocks:
-        C = P @ (cov + mean_cov[sl, sl]) @ P
-        v = mean[..., sl] @ P  # (P symmetric)
-        stat = np.einsum("...i,ij,...j->...", v, np.linalg.pinv(C, rcond=1e-10, hermitian=True), v) / dof
-        worst = np.maximum(worst, stat)
-    return worst if worst.ndim else float(worst)
+        C = J @ sol.cov @ J.T + Jp @ W @ Jp.T + mean_cov[:3, :3]
+        v = mean[..., :3]
+        try:
+            worst = np.einsum("...i,ij,...j->...", v, np.linalg.inv(C), v) / 3.0
+        except np.linalg.LinAlgError:  # (a degenerate allowance: the pseudo-inverse)
+            worst = np.einsum("...i,ij,...j->...", v, np.linalg.pinv(C, rcond=1e-10, hermitian=True), v) / 3.0
+    return worst if np.ndim(worst) else float(worst)
+
+
+def _plane(u: FloatArray) -> FloatArray:
+    """(2, 3) orthonormal rows across the unit vector ``u``."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(u, a)
+    e1 /= np.sqrt(e1 @ e1)
+    return np.stack([e1, np.cross(u, e1)])
 
 
 class JointDrift:
@@ -137,8 +148,8 @@ class JointDrift:
 
     def __init__(self) -> None:
         self._e = np.zeros((DRIFT_FRAMES, 6))
-        self._q = np.zeros((DRIFT_FRAMES, 3, 3))
-        self._w = np.zeros((DRIFT_FRAMES, 6, 6))
+        self._z = np.zeros((DRIFT_FRAMES, 3, 4))
+        self._noise: tuple[FloatArray, float] = (np.zeros((6, 6)), 0.0)  # the latest parent unit W and sigma^2
         self.restart()
 
     def restart(self) -> None:
@@ -151,12 +162,12 @@ class JointDrift:
         self._since: int | None = None  # the frame count at which the recent mean first went beyond the limits
         self.holding = False
 
-    def add(self, z: FloatArray, e: FloatArray, noise_w: FloatArray) -> None:
-        """One frame that passed the joint test: its ``[Q | t]`` (3, 4), joint residual ``e`` (3 or 6,) and parent ``sigma^2 W`` (6, 6)."""
+    def add(self, z: FloatArray, e: FloatArray, w_unit: FloatArray, sigma2: float) -> None:
+        """One frame that passed the joint test: its ``[Q | t]`` (3, 4), joint residual ``e`` (3 or 6,) and the parent's pose covariance ``sigma2 * w_unit`` (6, 6)."""
         k = self._n % DRIFT_FRAMES
         self._e[k, : e.size] = e  # (a ball joint's residual has 3 entries)
-        self._q[k] = z[:, :3]
-        self._w[k] = noise_w
+        self._z[k] = z
+        self._noise = (w_unit, sigma2)  # (the latest: it changes with the visible markers and the solves only)
         self._n += 1
         if self._n % DRIFT_FRAMES == 0:  # a block is complete: the one before it is now older than the recent frames
             if self._pending is not None:
@@ -165,7 +176,7 @@ class JointDrift:
             self._pending = self._e.mean(axis=0)
 
     def judge(self, sol: PoseSumsCentre | PoseSumsAxis | None, res: JointResidual | None) -> bool:
-        """Every tenth frame once :data:`DRIFT_MIN_BLOCKS` blocks are past: whether the joint drifted (see the class).
+        """Every :data:`DRIFT_EVERY` frames once :data:`DRIFT_MIN_BLOCKS` blocks are past: whether the joint drifted (see the class).
 
         The recent mean is beyond the limits when it reads over :data:`DRIFT_LIMIT` and over
         :data:`DRIFT_OVER_PAST` times every past block's mean. Its own noise is the frames' white part
@@ -177,14 +188,15 @@ class JointDrift:
         if sol is None or res is None or self._blocks < DRIFT_MIN_BLOCKS:
             self._since, self.holding = None, False
             return False
-        if n % (DRIFT_FRAMES // 10):
+        if n % DRIFT_EVERY:
             return False
         k = n % DRIFT_FRAMES
         e = np.roll(self._e, -k, axis=0)  # oldest first
         d = np.diff(e, axis=0)
         white = 0.5 * (d.T @ d) / d.shape[0]
         means = np.concatenate([e.mean(axis=0)[None], self._past[: min(self._blocks, DRIFT_BLOCKS)]])
-        stats = misfit_statistic(sol, res, means, white / DRIFT_FRAMES, self._q.mean(axis=0), self._w.mean(axis=0))
+        w_unit, sigma2 = self._noise
+        stats = misfit_statistic(sol, res, means, white / DRIFT_FRAMES, self._z[:, :, :3].mean(axis=0), sigma2 * w_unit)
         self.ratio = float(stats[0])
         if not (self.ratio > DRIFT_LIMIT and self.ratio > DRIFT_OVER_PAST * float(stats[1:].max())):
             self._since, self.holding = None, False
