@@ -19,7 +19,7 @@ moved on its bone moves ``m`` by about the move, and every output by as much: ju
 estimate's covariance of ``m`` and the parent's pose noise at the joint (the outputs' own), its
 chi-square per degree of freedom reads about the outputs' e/k. With the check (:class:`JointDrift`:
 outputs held from the first mean beyond the limits, the window restarted when a second, disjoint one
-is too), the same moves are held 20-50 frames after them and restarted 100 frames later; the outputs
+is too), the same moves are held 20-75 frames after them and restarted 100 frames later; the outputs
 since read mean e/k 0.9-1.0 (``test/test_joint_drift.py``).
 """
 

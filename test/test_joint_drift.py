@@ -78,8 +78,8 @@ def test_a_bumped_plate_restarts_the_window_within_two_seconds(kind: str, shift:
     assert float(np.mean(e["before"])) < 1.5 and float(np.mean(e["later"])) < 1.5
     # the frames between the move and its verdict (a mean over DRIFT_FRAMES) go out wrong; the new window's are
     # honest, and it is identifiable again at once (rigid markers). Without the check the 10 s after the move
-    # read e/k 8-44 in these four cases; with it 1.6-5.9, all of it from the frames before the first mean
-    # beyond the limits (20-50 frames after the move).
+    # read e/k 8-44 in these four cases; with it 1.9-7.1, all of it from the frames before the first mean
+    # beyond the limits (20-75 frames after the move).
     frames = np.asarray(e["frames"])
     ek = np.concatenate([e["before"], e["after"], e["later"]])
     since = ek[frames > est.joint_drifts[0]]
