@@ -42,6 +42,19 @@ def mahalanobis(err: NDArray[np.float64], cov: NDArray[np.float64]) -> float:
     return float(err @ pinv @ err) / rank
 
 
+def output_index(out: Any, centre: NDArray[np.float64], kind: str) -> float:
+    """e/k of one per-frame output (``JointOutput``) against the true joint centre (world, input units).
+
+    Ball: the position's error against its covariance, k = 3. Hinge: the error's part across the output's
+    axis direction (a point of the axis may be anywhere along it), k = 2.
+    """
+    err = out.position - centre
+    if kind == "hinge":
+        assert out.direction is not None
+        err = err - (err @ out.direction) * out.direction
+    return float(err @ np.linalg.pinv(out.cov, rcond=1e-12) @ err) / (3.0 if kind == "ball" else 2.0)
+
+
 def mc_band(values: list[float], low: float = 0.8, high: float = 1.25) -> None:
     """Assert the mean validation index squared lies in the calibration band."""
     mean = float(np.mean(values))

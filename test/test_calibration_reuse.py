@@ -15,6 +15,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import output_index
 from scipy.spatial.transform import Rotation
 
 from jointfit_core.calibration_fit import JOINT_MISFIT_FRAMES, JOINT_MISFIT_RATIO
@@ -70,12 +71,7 @@ def _session(
         out = est.update(yp[k], yc[k], float(t[k]))
         if out is None:
             continue
-        err = out.position - centre[k]
-        if truth.kind == "hinge":
-            assert out.direction is not None
-            u = out.direction
-            err = err - (err @ u) * u
-        e.append(float(err @ np.linalg.pinv(out.cov, rcond=1e-12) @ err) / (3.0 if truth.kind == "ball" else 2.0))
+        e.append(output_index(out, centre[k], truth.kind))
     return e, est
 
 
@@ -187,10 +183,6 @@ def test_thawing_a_calibration_that_does_not_fit_estimates_anew_without_publishi
                 pass
         if out is None:
             continue
-        err = out.position - centre[k]
-        if kind == "hinge":
-            assert out.direction is not None
-            err = err - (err @ out.direction) * out.direction
-        e.append((k, float(err @ np.linalg.pinv(out.cov, rcond=1e-12) @ err) / (3.0 if kind == "ball" else 2.0)))
+        e.append((k, output_index(out, centre[k], kind)))
     assert e and all(k > thaw_at + 10 for k, _ in e), e[:3]  # nothing before the new window's first solve
     assert max(v for _, v in e) < 25.0 and float(np.mean([v for _, v in e])) < 2.0

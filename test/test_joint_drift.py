@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import output_index
 from scipy.spatial.transform import Rotation
 
 from jointfit_core.estimator import OnlineJoint
@@ -57,11 +58,7 @@ def _run(
                 pass
         if out is None:
             continue
-        err = out.position - centre[k]
-        if kind == "hinge":
-            assert out.direction is not None
-            err = err - (err @ out.direction) * out.direction
-        v = float(err @ np.linalg.pinv(out.cov, rcond=1e-12) @ err) / (3.0 if kind == "ball" else 2.0)
+        v = output_index(out, centre[k], kind)
         e["before" if t[k] < BUMP_S else "after" if t[k] < BUMP_S + 10.0 else "later"].append(v)
         e["frames"].append(k + 1)  # (frame numbers count from 1, as joint_drifts)
     return est, e
