@@ -49,7 +49,7 @@ from .joint_misfit import JointDrift
 from .joint_outliers import GateLimits, after_failure
 from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
-from .segment_pair import PairSet, poses
+from .segment_pair import poses
 from .template_stage import TemplateStage
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
@@ -216,7 +216,6 @@ class OnlineJoint(JointSegments):
         self._outputs = WorldOutput(self.kind)
         # while estimating on rigid markers: do the recent frames still agree with the estimate (a cluster bumped)?
         self._drift = JointDrift() if not self._skin else None
-        self._drift_generation = -1
         #: Frame numbers at which the recent frames disagreed with the estimate beyond
         #: :data:`~jointfit_core.joint_misfit.DRIFT_LIMIT` (a cluster moved on its bone): the window restarted there.
         self.joint_drifts: list[int] = []
@@ -386,8 +385,13 @@ class OnlineJoint(JointSegments):
                 return None
             if self._joint.broke:  # the relative pose changed for good: the window's frames are another joint's
                 self._joint_broke(frame_no)
-            elif self._drift is not None and not self._frozen and self._joint.residual is not None:
-                self._judge_drift(ps, frame_no)
+            elif self._drift is not None and not self._frozen and self._drift.step(
+                self._generation, *self._joint.latest, ps.parent.W_unit, self._sigma[0] ** 2, self._solution,
+                self._joint.residual,
+            ):  # the recent frames disagree with the estimate for good (a cluster moved on its bone)
+                self.joint_drifts.append(frame_no)
+                JointEstimate.reset(self)  # the window's frames are of two placements: the next are the estimate's
+                self._installed()
         if self._frozen and ps.parent is not None and ps.child is not None:  # does the joint still hold?
             # (the joint test above has just passed this frame: its relative pose and joint residual)
             z, e = self._joint.latest
@@ -409,9 +413,8 @@ class OnlineJoint(JointSegments):
             self._stats.chained = False
         if ps.parent is None or self._solution is None:
             return None
-        if self._drift is not None and self._drift.holding and not self._frozen and self._drift_generation == self._generation:
-            # the recent frames disagree with the estimate (jointfit_core.joint_misfit.JointDrift): held, not yet a drift
-            self._drop("recent_frames_disagree")
+        if self._drift is not None and not self._frozen and self._drift.holds(self._generation):
+            self._drop("recent_frames_disagree")  # the recent frames disagree with the estimate; not yet a drift
             return None
         child_pose = (R[1], d[1], ps.child) if ps.child is not None else None
         return self._outputs.output(
@@ -437,25 +440,6 @@ class OnlineJoint(JointSegments):
             return
         JointEstimate.reset(self)
         self._installed()
-
-    def _judge_drift(self, ps: PairSet, frame_no: int) -> None:
-        """Keep this frame's joint residual for :class:`~jointfit_core.joint_misfit.JointDrift`; restart the window when it drifted.
-
-        The frames of the window are then of two placements of a cluster on its bone; the estimate is of
-        the frames from this one on (a new generation, as :meth:`_joint_broke`).
-        """
-        drift = self._drift
-        assert drift is not None and ps.parent is not None
-        if self._generation != self._drift_generation:  # a new window: its residuals only
-            drift.restart()
-            self._drift_generation = self._generation
-        z, e = self._joint.latest
-        drift.add(z, e, ps.parent.W_unit, self._sigma[0] ** 2)
-        if drift.judge(self._solution, self._joint.residual):
-            self.joint_drifts.append(frame_no)
-            JointEstimate.reset(self)
-            self._installed()
-            drift.restart()
 
     def hold_until_judged(self) -> None:
         """A frozen calibration from another session: no output until its markers have been judged against it.

@@ -150,7 +150,29 @@ class JointDrift:
         self._e = np.zeros((DRIFT_FRAMES, 6))
         self._z = np.zeros((DRIFT_FRAMES, 3, 4))
         self._noise: tuple[FloatArray, float] = (np.zeros((6, 6)), 0.0)  # the latest parent unit W and sigma^2
+        self._generation = -1  # the estimator's window the frames are of (:meth:`step`)
         self.restart()
+
+    def step(
+        self, generation: int, z: FloatArray, e: FloatArray, w_unit: FloatArray, sigma2: float,
+        sol: PoseSumsCentre | PoseSumsAxis | None, res: JointResidual | None,
+    ) -> bool:
+        """:meth:`add` then :meth:`judge` of a frame of the window ``generation``; a new one restarts first.
+
+        Returns whether the joint drifted (the caller restarts its window; this restarts too).
+        """
+        if generation != self._generation:  # a new window: its residuals only
+            self.restart()
+            self._generation = generation
+        self.add(z, e, w_unit, sigma2)
+        if not self.judge(sol, res):
+            return False
+        self.restart()
+        return True
+
+    def holds(self, generation: int) -> bool:
+        """Whether a frame of the window ``generation`` is held (:attr:`holding`, for this window)."""
+        return self.holding and generation == self._generation
 
     def restart(self) -> None:
         """Forget the frames (a new window, a freeze, a thaw)."""
