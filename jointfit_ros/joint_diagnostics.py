@@ -274,12 +274,12 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
             "If a tracker swapped this segment's labels with another cluster's (the two thighs), it is another "
             "joint's; check the labels (~/reset clears this)"
         )
-    if est.joint_drifts:  # a cluster bumped on its bone (rigid markers): the estimate is of the frames since
+    if est.joint_drifts and _recent_drift(runner):  # a cluster bumped on its bone (rigid markers): the estimate is of the frames since
         return (
             f"the joint's recent frames disagreed with its estimate {len(est.joint_drifts)} time(s), the last at "
             f"frame {est.joint_drifts[-1]}: a cluster moved on its bone (bumped, or slipped on its strap), so the "
             "window restarted there and the estimate is of the frames since; a calibration saved before is of "
-            "the old placement (~/reset clears this)"
+            f"the old placement (said for {DRIFT_WARN_S:.0f} s; ~/reset clears this)"
         )
     if not sol.identifiable:
         outputs = (
@@ -293,6 +293,20 @@ def _warning(runner: JointRunner, sol: PoseSumsCentre | PoseSumsAxis, units: str
     if runner.sign.problem:
         return f"hinge sign convention not honoured: {runner.sign.problem}"
     return runner.consistency.warning(est) if sol.identifiable else ""
+
+
+#: Seconds of input (3000 frames when the rate is not known) after a drift during which the joint warns of it.
+#: The new window's estimate is of the same joint (unlike a break's, which may be another's): after that the
+#: count stays in the values, the status returns to what the estimate says, and auto_freeze may act.
+DRIFT_WARN_S = 30.0
+
+
+def _recent_drift(runner: JointRunner) -> bool:
+    """Whether the joint's last drift (:attr:`OnlineJoint.joint_drifts`) is under DRIFT_WARN_S of input ago."""
+    est = runner.estimator
+    rate = runner.input_rate()
+    span = DRIFT_WARN_S * rate if rate > 0.0 else 3000.0
+    return est.n_frames_seen - est.joint_drifts[-1] < span
 
 
 #: A full window by frame count that spans less than this (s of input) is named when the joint is not
