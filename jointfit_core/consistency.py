@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2 as chi2_dist
 
 from .errors import InputError
+from .segments import _perp_basis
 
 __all__ = [
     "BlockConsistency",
@@ -270,13 +271,6 @@ def ball_consistency(
     return BlockConsistency("ball", k, n_skipped, x, None, f, chi2, dof, p, ratio, spread, math.nan, ok, msg)
 
 
-def _plane_basis(u: FloatArray) -> FloatArray:
-    """(2, 3) orthonormal rows perpendicular to the unit vector ``u``."""
-    _, _, vt = np.linalg.svd(u[None, :])
-    out: FloatArray = vt[1:]
-    return out
-
-
 def hinge_consistency(
     directions: ArrayLike,
     cov_directions: ArrayLike,
@@ -342,10 +336,10 @@ def hinge_consistency(
                      f"{MIN_BLOCKS} needed")
     u = u * np.where(u @ u[0] < 0.0, -1.0, 1.0)[:, None]
     u0 = u.mean(axis=0) / np.linalg.norm(u.mean(axis=0))
-    B = _plane_basis(u0)
+    B = _perp_basis(u0).T
     u_bar = u0 + B.T @ _pooled(u @ B.T, _pinv(np.einsum("ai,kij,bj->kab", B, Cu, B), 2))
     u_bar /= np.linalg.norm(u_bar)
-    B = _plane_basis(u_bar)
+    B = _perp_basis(u_bar).T
     Wu = _pinv(np.einsum("ai,kij,bj->kab", B, Cu, B), 2)
     ru = u @ B.T
     ru -= _pooled(ru, Wu)

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from .hinge_from_sums import PoseSumsAxis
 from .joint_gate import JointResidual
 from .pose import lever_jacobian, skew
-from .segments import PoseSumsCentre
+from .segments import PoseSumsCentre, _perp_basis
 
 __all__ = ["DRIFT_FRAMES", "DRIFT_LIMIT", "JointDrift", "misfit_statistic"]
 
@@ -95,38 +95,31 @@ def misfit_statistic(
     Qm, W = q_mean, noise_w
     if isinstance(sol, PoseSumsAxis):
         u = res.u
-        B = _plane(u)  # (2, 3): the plane across the axis, where both blocks are judged
+        B = _perp_basis(u).T  # (2, 3): the plane across the axis, where both blocks are judged
         Nx = skew(u)
         # the turn across the axis only: along it, ``Q a_c - a_p`` is of second order (the pose noise's
         # shrinking of ``Q a_c``, a bias with next to no scatter, that no direction error causes)
         turn = res.length**2 * (Qm @ sol.cov_direction_child @ Qm.T + sol.cov_direction_parent + Nx @ W[:3, :3] @ Nx.T)
         Jp = lever_jacobian(sol.point_parent)
         across = Qm @ sol.cov_point_child @ Qm.T + sol.cov_point_parent + Jp @ W @ Jp.T
-        worst = np.zeros(mean.shape[:-1])
-        for sl, cov in ((slice(0, 3), turn), (slice(3, 6), across)):
-            C = B @ (cov + mean_cov[sl, sl]) @ B.T
-            v = mean[..., sl] @ B.T
-            det = C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0]
-            quad = C[1, 1] * v[..., 0] ** 2 - 2.0 * C[0, 1] * v[..., 0] * v[..., 1] + C[0, 0] * v[..., 1] ** 2
-            worst = np.maximum(worst, np.where(det > 0.0, quad / np.where(det > 0.0, det, 1.0), np.inf) / 2.0)
+        worst = np.maximum(
+            _per_dof(mean[..., :3] @ B.T, B @ (turn + mean_cov[:3, :3]) @ B.T),
+            _per_dof(mean[..., 3:6] @ B.T, B @ (across + mean_cov[3:6, 3:6]) @ B.T),
+        )
     else:
         J = np.concatenate([-np.eye(3), Qm], axis=1)
         Jp = lever_jacobian(sol.centre_parent)
-        C = J @ sol.cov @ J.T + Jp @ W @ Jp.T + mean_cov[:3, :3]
-        v = mean[..., :3]
-        try:
-            worst = np.einsum("...i,ij,...j->...", v, np.linalg.inv(C), v) / 3.0
-        except np.linalg.LinAlgError:  # (a degenerate allowance: the pseudo-inverse)
-            worst = np.einsum("...i,ij,...j->...", v, np.linalg.pinv(C, rcond=1e-10, hermitian=True), v) / 3.0
+        worst = _per_dof(mean[..., :3], J @ sol.cov @ J.T + Jp @ W @ Jp.T + mean_cov[:3, :3])
     return worst if np.ndim(worst) else float(worst)
 
 
-def _plane(u: FloatArray) -> FloatArray:
-    """(2, 3) orthonormal rows across the unit vector ``u``."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(u, a)
-    e1 /= np.sqrt(e1 @ e1)
-    return np.stack([e1, np.cross(u, e1)])
+def _per_dof(v: FloatArray, C: FloatArray) -> Any:
+    """``v^T C^-1 v / d`` of vectors ``v`` (..., d) against one covariance ``C`` (d, d) (degenerate: its pseudo-inverse)."""
+    try:
+        inv = np.linalg.inv(C)
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(C, rcond=1e-10, hermitian=True)
+    return np.einsum("...i,ij,...j->...", v, inv, v) / C.shape[0]
 
 
 class JointDrift:
@@ -175,7 +168,7 @@ class JointDrift:
         return self.holding and generation == self._generation
 
     def restart(self) -> None:
-        """Forget the frames (a new window, a freeze, a thaw)."""
+        """Forget the frames (a new window of the estimator, or after a drift: :meth:`step`)."""
         self._n = 0
         self.ratio = math.nan
         self._pending: FloatArray | None = None  # the last block's mean, until it is older than the recent frames
