@@ -36,6 +36,7 @@ outputs are withheld in the same way.
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -113,7 +114,7 @@ class CalibrationFit:
         self._e_mean = np.zeros(0)
         self._e_sq = np.zeros((0, 0))
         self._e_lag = np.zeros((0, 0))  # the recent mean of e_k e_{k-L}^T (L = SLOW_LAG_FRAMES): its slow part
-        self._e_back: list[FloatArray] = []  # the last SLOW_LAG_FRAMES residuals, oldest first
+        self._e_back: deque[FloatArray] = deque(maxlen=SLOW_LAG_FRAMES)  # the last residuals, oldest first
         self._q_mean = np.zeros((3, 3))
         self._noise_w = np.zeros((6, 6))  # the recent mean of the parent's pose covariance (sigma^2 W), local
         self._noise_count = 0
@@ -210,15 +211,13 @@ class CalibrationFit:
             self._e_sq = np.outer(e, e)
             self._e_lag = np.outer(e, e)
             self._q_mean = z[:, :3].copy()
-            self._e_back = []
+            self._e_back.clear()
         else:
             self._e_mean += w * (e - self._e_mean)
             self._e_sq += w * (np.outer(e, e) - self._e_sq)
             self._e_lag += w * (np.outer(e, self._e_back[0]) - self._e_lag)
             self._q_mean += w * (z[:, :3] - self._q_mean)
         self._e_back.append(e.copy())
-        if len(self._e_back) > SLOW_LAG_FRAMES:
-            del self._e_back[0]
         if n < JOINT_MISFIT_FRAMES or n % max(JOINT_MISFIT_FRAMES // 10, 1):
             return
         self.joint_ratio = self._joint_statistic(res)
