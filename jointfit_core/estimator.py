@@ -51,6 +51,7 @@ from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
 from .segment_pair import poses
 from .template_stage import TemplateStage
+from .window_entries import WINDOW_MAX_FRAMES
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
 
 __all__ = [
@@ -128,6 +129,14 @@ class OnlineJoint(JointSegments):
         How the parent's and the child's markers are attached (one for both,
         or a pair; :func:`~jointfit_core.artefact.check_attachment`): skin
         markers add the soft-tissue part to the estimate's covariances.
+    window_max_frames : int or None
+        Most frames a ``window_s`` window holds (default
+        :data:`~jointfit_core.window_entries.WINDOW_MAX_FRAMES`; None or 0: no
+        bound): fed faster than ``window_max_frames / window_s`` frames per
+        second, at most one frame per ``window_s / window_max_frames`` seconds
+        enters the window (the others get their outputs as usual), so that its
+        memory does not grow with the input rate
+        (:mod:`jointfit_core.window_entries`). Other windows keep every frame.
 
     Exactly one of ``window``, ``window_s``, ``half_life``, ``half_life_s``.
 
@@ -160,6 +169,7 @@ class OnlineJoint(JointSegments):
         serial_correlation: bool = True,
         gate: float = 5.0,
         attachment: str | tuple[str, str] = "rigid",
+        window_max_frames: int | None = WINDOW_MAX_FRAMES,
     ) -> None:
         settings = check_settings(
             kind,
@@ -175,6 +185,7 @@ class OnlineJoint(JointSegments):
             serial_correlation=serial_correlation,
             gate=gate,
             attachment=attachment,
+            window_max_frames=window_max_frames,
         )
         self.gate = settings.gate
         #: True while the frames given are ones this joint received before (a looped replay, told by the
@@ -405,8 +416,8 @@ class OnlineJoint(JointSegments):
             return None
         both = ps.parent is not None and ps.child is not None
         if both and not self._frozen and not self.replayed:
-            self._stats.add_frame(R, d, ss, ps, stamp, frame_no, Y)
-            self._version += 1
+            if self._stats.add_frame(R, d, ss, ps, stamp, frame_no, Y):
+                self._version += 1
         else:
             if both and not self._frozen:  # left out because it was received before
                 self.replayed_frames += 1

@@ -63,6 +63,22 @@ class PosedBlock:
     Y: FloatArray | None = None
     wn_sets: FloatArray | None = None
 
+    def rows(self, rows: NDArray[np.intp], paired: NDArray[np.bool_]) -> PosedBlock:
+        """The block's frames ``rows`` (in order) with new lag-pair flags ``paired`` (the marker sets kept whole)."""
+        return PosedBlock(
+            R=self.R[rows],
+            d=self.d[rows],
+            ss=self.ss[rows],
+            W_sets=self.W_sets,
+            dof_sets=self.dof_sets,
+            which=self.which[rows],
+            paired=paired,
+            stamps=None if self.stamps is None else self.stamps[rows],
+            times=self.times[rows],
+            Y=None if self.Y is None else self.Y[rows],
+            wn_sets=self.wn_sets,
+        )
+
 
 class FrameQueue:
     """Up to ``capacity`` posed frames of one kind (stamped or not, with markers or not), oldest first.

@@ -23,6 +23,7 @@ from .errors import InputError
 from .pose import MIN_POSE_MARKERS
 from .segment_tracker import shape_ok
 from .stats import WindowSpec, window_spec
+from .window_entries import check_window_max_frames
 
 __all__ = [
     "KINDS",
@@ -69,6 +70,8 @@ class JointSettings:
         Outlier gate (>= 0; 0: off).
     attachment : (str, str)
         ``"skin"`` or ``"rigid"``, the parent's and the child's markers.
+    window_max_frames : int or None
+        Most frames a time window holds (None: no bound; :mod:`jointfit_core.window_entries`).
     """
 
     kind: str
@@ -81,6 +84,7 @@ class JointSettings:
     serial_correlation: bool
     gate: float
     attachment: tuple[str, str]
+    window_max_frames: int | None = None
 
 
 def check_settings(
@@ -98,6 +102,7 @@ def check_settings(
     serial_correlation: bool,
     gate: float,
     attachment: str | tuple[str, str],
+    window_max_frames: int | None = None,
 ) -> JointSettings:
     """:class:`~jointfit_core.estimator.OnlineJoint`'s arguments (the same names) checked, in this order.
 
@@ -124,6 +129,7 @@ def check_settings(
         serial_correlation=check_serial_correlation(serial_correlation),
         gate=check_gate(gate),
         attachment=check_attachment(attachment),
+        window_max_frames=check_window_max_frames(window_max_frames),
     )
 
 

@@ -122,13 +122,15 @@ class JointEstimate:
         self.serial_correlation = settings.serial_correlation
         #: ``("skin" | "rigid", "skin" | "rigid")``: how the parent's and the child's markers are attached.
         self.attachment = settings.attachment
+        #: Most frames a time window holds (None: no bound; :mod:`jointfit_core.window_entries`).
+        self.window_max_frames = settings.window_max_frames
         self._skin = "skin" in self.attachment
         self._moments = self._skin and self.kind == "hinge"
         self.reset()
 
     def reset(self) -> None:
         """Forget the window's frames, the estimate and the frozen state."""
-        self._stats = RelativePoseSums(self.spec, self._skin, self._moments)
+        self._stats = RelativePoseSums(self.spec, self._skin, self._moments, self.window_max_frames)
         self._solution: PoseSumsCentre | PoseSumsAxis | None = None
         self._sigma = (0.0, 0.0)
         # Data changes since the start (frames entered; hinge sign convention) and the change the
@@ -178,6 +180,14 @@ class JointEstimate:
     def n_window(self) -> int:
         """Frames in the window (frames added, under forgetting)."""
         return 0 if self._stats.window is None else self._stats.window.n_window
+
+    @property
+    def window_thinned(self) -> int:
+        """Frames left out of a time window fed faster than ``window_max_frames`` allows, since the window started.
+
+        :mod:`jointfit_core.window_entries`; 0 for other windows.
+        """
+        return self._stats.entries.thinned
 
     @property
     def movement_seconds(self) -> float:

@@ -32,6 +32,7 @@ from .hinge_from_sums import PoseSumsAxis
 from .joint_sums import _Z
 from .segments import PoseSumsCentre
 from .serial import SerialInflation
+from .window_entries import WINDOW_MAX_FRAMES
 
 if TYPE_CHECKING:
     from .estimator import OnlineJoint
@@ -85,6 +86,7 @@ def to_dict(joint: OnlineJoint) -> dict[str, Any]:
         "window_s": spec.seconds,
         "half_life": spec.half_life,
         "half_life_s": spec.half_life_s,
+        "window_max_frames": joint.window_max_frames,
         "template_frames": joint.template_frames,
         "reference_direction": None if joint.reference_direction is None else joint.reference_direction.tolist(),
         "n_markers": list(joint.n_markers) if joint.n_markers is not None else None,
@@ -202,6 +204,7 @@ def _with_settings(cls: type[OnlineJoint], data: dict[str, Any]) -> OnlineJoint:
         serial_correlation=data.get("serial_correlation", True),  # absent before it existed
         gate=float(data.get("gate", 5.0)),
         attachment=tuple(data.get("attachment", ("rigid", "rigid"))),  # absent before it existed
+        window_max_frames=data.get("window_max_frames", WINDOW_MAX_FRAMES),  # absent before it existed
     )
 
 

@@ -37,6 +37,7 @@ from .serial import (
 )
 from .stats import SlidingSums, WindowSpec
 from .white_noise_sums import SecondDifferences
+from .window_entries import WindowEntries
 
 __all__ = ["MOVING_DEG", "PENDING_MAX", "RelativePoseSums", "moving_seconds"]
 
@@ -107,15 +108,23 @@ class RelativePoseSums:
         Keep the soft-tissue feature sums (either segment on skin markers).
     moments : bool
         Keep the features' second moments too (skin hinges).
+    max_frames : int or None, optional
+        A time window's most frames: at a faster input, at most one frame per
+        ``seconds / max_frames`` of stamp time enters (:class:`~jointfit_core.window_entries.WindowEntries`);
+        None: every frame.
 
     Attributes
     ----------
     window : SlidingSums or None
         The window's sums (layout: this module's ``_Z`` ... ``_FM``); None until a frame entered.
     chained : bool
-        Whether the last frame that reached the joint entered the statistics: the next frame then
+        Whether the last frame that reached the joint could enter the statistics (it entered, or
+        :attr:`entries` left it out of a time window fed faster than it holds): the next frame then
         carries its lag pair with it (see :class:`~jointfit_core.joint_estimate.JointEstimate`, Notes,
         *lag pairs*). The joint clears it for a frame that reaches it but cannot enter.
+    entries : WindowEntries
+        Which frames enter (a time window fed faster than ``max_frames`` allows leaves some out;
+        :attr:`WindowEntries.thinned <jointfit_core.window_entries.WindowEntries.thinned>` counts them).
 
     Notes
     -----
@@ -133,8 +142,10 @@ class RelativePoseSums:
     after a few dozen frames).
     """
 
-    def __init__(self, spec: WindowSpec, skin: bool, moments: bool) -> None:
+    def __init__(self, spec: WindowSpec, skin: bool, moments: bool, max_frames: int | None = None) -> None:
         self.spec = spec
+        #: Which frames enter a time window faster than it holds (every frame for other windows).
+        self.entries = WindowEntries(spec.seconds, max_frames)
         self._skin = skin
         self._moments = moments
         self.n_sums = _N_SUMS_HINGE if moments else _N_SUMS
@@ -171,8 +182,8 @@ class RelativePoseSums:
         stamp: float | None,
         frame_no: int,
         Y: FloatArray | None = None,
-    ) -> None:
-        """Add one frame whose two segments are posed (summed at the next :meth:`flush`).
+    ) -> bool:
+        """Add one frame whose two segments are posed (summed at the next :meth:`flush`); whether it entered.
 
         Parameters
         ----------
@@ -199,15 +210,20 @@ class RelativePoseSums:
         the latest after :data:`PENDING_MAX` frames, and whenever the sums are read
         (:attr:`window`, :meth:`entered` and the readers built on them), so that a reader never
         sees a sum without the frames added before. A live frame's outputs do not depend on the
-        sums, so the node publishes them without this work.
+        sums, so the node publishes them without this work. A time window fed faster than it holds
+        (:attr:`entries`) leaves the frame out (False), keeping the chain of lag pairs.
         """
+        paired = self.entries.admit(stamp, self.chained)
+        self.chained = True
+        if paired is None:
+            return False
         queue = self._queue
         if not queue.fits(stamp is not None, Y is not None):
             self.flush()  # a block holds frames of one kind
-        queue.append(R, d, ss, pairs, stamp, frame_no, Y, self.chained)
-        self.chained = True
+        queue.append(R, d, ss, pairs, stamp, frame_no, Y, paired)
         if queue.full:
             self.flush()
+        return True
 
     def flush(self) -> None:
         """Sum the frames :meth:`add_frame` queued, in order, as one block."""
@@ -221,9 +237,15 @@ class RelativePoseSums:
         -----
         The frames :meth:`add_frame` queued are summed first (the order is kept). Exponential
         forgetting sums the block's weighted contributions with matrix products, never forming
-        them one per frame.
+        them one per frame. A time window fed faster than it holds takes the block's frames
+        that :attr:`entries` admits, as :meth:`add_frame` would one by one.
         """
         self.flush()
+        rows, paired = self.entries.admit_block(block.stamps, block.paired)
+        if rows is not None:
+            if rows.size == 0:
+                return
+            block = block.rows(rows, paired)
         self._sum_block(block)
 
     def _sum_block(self, block: PosedBlock) -> None:

@@ -398,6 +398,7 @@ def fit_main(argv: Sequence[str]) -> int:
                 # is the configured one, not the fit's no-forgetting sums.
                 data.update(dict.fromkeys(("window", "window_s", "half_life", "half_life_s")))
                 data.update(configured[joint["name"]].window_kwargs())
+                data["window_max_frames"] = configured[joint["name"]].window_max_frames or None
                 calibrations[joint["name"]] = data
         for joint in summary["joints"]:
             name = joint["name"]

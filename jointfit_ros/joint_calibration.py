@@ -75,6 +75,8 @@ def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
     configured = {**wanted, "template_frames": cfg.template_frames, "gate": cfg.outlier_gate}
     if "attachment" in data:  # saved since the soft-tissue part exists
         configured["attachment"] = [cfg.attachment, cfg.attachment]
+    if "window_max_frames" in data and cfg.window_s > 0.0:  # saved since it exists; it bounds time windows only
+        configured["window_max_frames"] = cfg.window_max_frames or None
     notes = []
     for key, value in configured.items():
         saved = data.get(key)

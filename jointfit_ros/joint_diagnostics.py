@@ -172,6 +172,10 @@ def _input_values(runner: JointRunner) -> dict[str, Any]:
     }
     if runner.cfg.type == "hinge":
         values["axis points"] = runner.axis_words()
+    if est.window_thinned:
+        cap = est.statistics.entries.rate_cap
+        values["frames left out of the window (input faster than window_max_frames / window_s)"] = est.window_thinned
+        values["frames entering the window (Hz, at most)"] = round(cap, 1)
     for reason, count in sorted(est.dropped.items()):
         values[f"dropped: {reason}"] = count
     for side, n in zip(("parent", "child", "joint"), (*est.gated_frames, est.joint_gated_frames), strict=True):
@@ -328,7 +332,8 @@ def short_window(runner: JointRunner) -> str:
         return ""
     return (
         f"; the window holds only the last {frames} frames ({frames / rate:.3g} s at {rate:.3g} Hz), so recording "
-        "longer adds no movement to it: lengthen it (window, in frames, or window_s, in seconds)"
+        "longer adds no movement to it: lengthen it (window_s, in seconds, at most window_max_frames frames of it "
+        "entering; or window, in frames)"
     )
 
 

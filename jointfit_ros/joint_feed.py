@@ -173,6 +173,7 @@ class JointFeed:
                 (len(self.parent_rows) + len(self.cfg.parent_chain)) or 4,
                 (len(self.child_rows) + len(self.cfg.child_chain)) or 4,
             ),
+            window_max_frames=self.cfg.window_max_frames,
             **self.cfg.window_kwargs(),
         )
 

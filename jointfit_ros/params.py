@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from jointfit_core.errors import JointfitError
+from jointfit_core.window_entries import WINDOW_MAX_FRAMES
 
 from .naming import DEFAULT_NODE, entry_matches, is_wildcard, node_path
 
@@ -394,7 +395,8 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "int",
         3000,
         "Sliding window length in frames (used when window_s and half_life_s are 0): 30 s at 100 Hz, but 6 s at "
-        "500 Hz; a joint that is not identifiable with a full window of under 20 s says so in its status.",
+        "500 Hz; a joint that is not identifiable with a full window of under 20 s says so in its status. It keeps "
+        "every frame (5-8.6 KB each): at high rates prefer window_s, which window_max_frames bounds.",
         minimum=3,
         maximum=1_000_000,
     ),
@@ -405,6 +407,16 @@ JOINT_PARAMS: tuple[ParamSpec, ...] = (
         "Sliding window length in seconds of stamp time; 0: use window.",
         minimum=0.0,
         maximum=3600.0,
+    ),
+    ParamSpec(
+        "window_max_frames",
+        "int",
+        WINDOW_MAX_FRAMES,
+        "Most frames a window_s window holds (5-8.6 KB of memory each): fed faster than window_max_frames / "
+        "window_s per second, at most one frame per window_s / window_max_frames seconds enters the window; every "
+        "frame still gets its output. 0: every frame enters (30 s at 1 kHz: 258 MB per skin hinge).",
+        minimum=0,
+        maximum=1_000_000,
     ),
     ParamSpec(
         "half_life_s",
@@ -554,6 +566,7 @@ class JointConfig:
     attachment: str = "skin"
     parent_segment: str = ""
     child_segment: str = ""
+    window_max_frames: int = WINDOW_MAX_FRAMES
 
     def landmarks(self, group: str) -> dict[str, str] | None:
         """The markers of a landmark group of :data:`ANATOMICAL_GROUPS` by role, or None when not configured."""
@@ -777,6 +790,7 @@ def _joint_config(
         window=v["window"],
         window_s=v["window_s"],
         half_life_s=v["half_life_s"],
+        window_max_frames=v["window_max_frames"],
         template_frames=v["template_frames"],
         outlier_gate=v["outlier_gate"],
         calibration_file=v["calibration_file"],

@@ -19,7 +19,7 @@ from jointfit_ros.joint_diagnostics import SHORT_WINDOW_S
 from jointfit_ros.params import node_config, params_from_file
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "lower_body.yaml"
-HINT = "so recording longer adds no movement to it: lengthen it (window, in frames, or window_s, in seconds)"
+HINT = "so recording longer adds no movement to it: lengthen it (window_s, in seconds"
 
 
 def _statuses(rate: float, window: int, seconds: float) -> dict[str, str]:
