@@ -165,7 +165,10 @@ class RelativePoseSums:
 
     def _window(self) -> SlidingSums:
         if self._sums is None:
-            self._sums = SlidingSums(self.spec, self.n_sums, self.n_sums, None)
+            # a thinned time window holds at most max_frames + 1 frames (its span cuts at most that many bins;
+            # one more for rounding at the bins' edges): its ring need not double past them
+            cap = self.entries.max_frames
+            self._sums = SlidingSums(self.spec, self.n_sums, self.n_sums, None, max_frames=1_000_000 if cap is None else cap + 2)
         return self._sums
 
     @property

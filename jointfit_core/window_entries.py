@@ -67,12 +67,15 @@ class WindowEntries:
     ----------
     bin_s : float or None
         The bin width (s), None when every frame enters.
+    max_frames : int or None
+        The bound when there is one (None when every frame enters).
     thinned : int
         Frames left out so far (since :meth:`clear`).
     """
 
     def __init__(self, seconds: float | None, max_frames: int | None) -> None:
         self.bin_s = seconds / max_frames if seconds is not None and max_frames else None
+        self.max_frames = max_frames if self.bin_s is not None else None
         self.clear()
 
     def clear(self) -> None:
