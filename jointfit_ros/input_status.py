@@ -15,6 +15,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from .activity import InputActivity
+from .frame_load import BUSY_LIMIT, FrameLoad
 from .joint_diagnostics import OK, STALE, WARN
 from .params import NodeConfig
 
@@ -47,6 +48,7 @@ class InputStatus:
         cfg: NodeConfig,
         values: dict[str, object],
         incompatible: Mapping[str, str] | None = None,
+        load: FrameLoad | None = None,
     ) -> tuple[int, str]:
         """The input status's level and message at ``now`` (monotonic s); adds its values to ``values``.
 
@@ -65,6 +67,10 @@ class InputStatus:
         incompatible : mapping of str to str, optional
             Input topics with publishers whose QoS their subscription cannot take: the last policy that
             did not match (:attr:`~jointfit_ros.inputs.MessageRouter.incompatible`).
+        load : FrameLoad, optional
+            The node's input callbacks' times: frames that never arrived are blamed on the node when it
+            was busy with frames :data:`~jointfit_ros.frame_load.BUSY_LIMIT` of its time or more, else
+            on the network or the driver (without it, on either).
 
         Returns
         -------
@@ -138,7 +144,7 @@ class InputStatus:
                 f"; {c['repeated_frames']} frames received again (a looped replay: the same stamps and markers), "
                 "published but not added to the windows again"
             )
-        level, message = self._missed(now, gaps, cfg, level, message, values)
+        level, message = self._missed(now, gaps, cfg, level, message, values, load)
         if act.silent_s is not None and act.silent_s >= cfg.stale_after:
             return STALE, f"no messages for {act.silent_s:.1f} s; {message}"
         if act.all_dropped:
@@ -146,15 +152,28 @@ class InputStatus:
         return level, message
 
     def _missed(
-        self, now: float, gaps: Any, cfg: NodeConfig, level: int, message: str, values: dict[str, object]
+        self,
+        now: float,
+        gaps: Any,
+        cfg: NodeConfig,
+        level: int,
+        message: str,
+        values: dict[str, object],
+        load: FrameLoad | None,
     ) -> tuple[int, str]:
         """Frames that never arrived (gaps in the stamps), over the last few seconds: a burst lost in one
-        stall of the source or the node is not a loss rate."""
+        stall of the source or the node is not a loss rate. Whose they are: the node's when it was busy."""
         values["frames missed (gaps in the stamps)"] = gaps.missed
+        window = max(MISSED_WINDOW_S, cfg.stale_after)
         history = self._gaps
         history.append((now, gaps.received, gaps.missed))
-        while len(history) > 2 and history[1][0] <= now - max(MISSED_WINDOW_S, cfg.stale_after):
+        while len(history) > 2 and history[1][0] <= now - window:
             history.popleft()
+        per_frame, busy = (None, None) if load is None else load.sample(now, window)
+        if per_frame is not None:
+            values["time per input message in the node (ms)"] = round(1e3 * per_frame, 3)
+        if busy is not None:
+            values["node busy with input messages (%)"] = round(100.0 * busy, 1)
         received, missed = gaps.received - history[0][1], gaps.missed - history[0][2]
         if received + missed:
             values["frames missed, recent (%)"] = round(100.0 * missed / (received + missed), 2)
@@ -162,7 +181,22 @@ class InputStatus:
             level = max(level, WARN)
             message += (
                 f"; {missed} of the last {received + missed} frames never arrived (gaps in the stamps of the "
-                f"{1.0 / gaps.period_s:.0f} Hz stream): the node is not keeping up, or the network or the driver "
-                "drops them"
+                f"{1.0 / gaps.period_s:.0f} Hz stream): " + _whose(per_frame, busy, gaps.period_s, len(cfg.joints))
             )
         return level, message
+
+
+def _whose(per_frame: float | None, busy: float | None, period_s: float, joints: int) -> str:
+    """Words for who lost the frames that never arrived: the node (busy), the network or driver (not), or either."""
+    if per_frame is None or busy is None:
+        return "the node is not keeping up, or the network or the driver drops them"
+    if busy >= BUSY_LIMIT:
+        return (
+            f"the node is not keeping up: a message takes it {1e3 * per_frame:.2f} ms ({joints} joints) and the "
+            f"stream sends one every {1e3 * period_s:.2f} ms (busy {100.0 * busy:.0f} % of the time); give the "
+            "joints to two nodes on the same marker topic (each with part of them), or lower the capture rate"
+        )
+    return (
+        f"the node had time for them (busy with messages {100.0 * busy:.0f} % of the time, {1e3 * per_frame:.2f} ms "
+        "each): the network or the driver drops them"
+    )

@@ -57,6 +57,7 @@ from .conversions import (
     stamp_from_ns,
 )
 from .description import RobotDescription
+from .frame_load import FrameLoad
 from .graph import graph_problems
 from .guard import CallbackGuard
 from .input_status import InputStatus
@@ -137,6 +138,7 @@ class JointfitNode(Node):
         self._tf = TfOutput(self) if self._segments.names else None
         self._subscribers_due = 0.0
         self._input_status = InputStatus()  # the input status's samples between diagnostics ticks
+        self._frame_load = FrameLoad()  # the input callbacks' times: whose frames went missing
         self._wants = (False, False)
         if self._tf is not None and self._tf.problem:
             self.get_logger().info(self._tf.problem)
@@ -256,6 +258,7 @@ class JointfitNode(Node):
             self.router.last_problem = None
 
     def _on_markers(self, raw: bytes) -> None:
+        start = time.perf_counter()
         routed = self.router.markers(raw)  # (defer_bookkeeping: the outputs first, then after_outputs)
         try:
             for r in routed:
@@ -267,6 +270,7 @@ class JointfitNode(Node):
                 self._publish_segments(self.router.routed_stamp_ns)
         finally:
             self.router.after_outputs()  # stamp gaps, live-geometry samples: after the frame's outputs are out
+            self._frame_load.add(time.perf_counter() - start)
         self._report_problem()
 
     def _publish_segments(self, stamp_ns: int) -> None:
@@ -300,11 +304,13 @@ class JointfitNode(Node):
 
     def _pose_callback(self, topic: str) -> Callable[[bytes], None]:
         def callback(raw: bytes) -> None:
+            start = time.perf_counter()
             routed = self.router.pose(topic, raw)
             for r in routed:
                 self._publish_world(r)
             if self._subscribed()[1]:
                 self._publish_joint_states(routed)
+            self._frame_load.add(time.perf_counter() - start)
             self._report_problem()
 
         return callback
@@ -434,7 +440,7 @@ class JointfitNode(Node):
         node_values: dict[str, object] = {}
         now = time.monotonic()
         level, message = self._input_status.status(
-            now, self.counters, self.router.gaps, self.cfg, node_values, self.router.incompatible
+            now, self.counters, self.router.gaps, self.cfg, node_values, self.router.incompatible, self._frame_load
         )
         node_values.update({
             "robot description": self._description.problem or f"published ({self._description.joints} frozen joints)",

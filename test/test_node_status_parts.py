@@ -11,9 +11,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from helpers import fake_rig_values
 
 from jointfit_ros.fake_mocap import frame_at, make_rigs
+from jointfit_ros.frame_load import FrameLoad
 from jointfit_ros.input_status import InputStatus
 from jointfit_ros.inputs import MessageRouter
 from jointfit_ros.joint_diagnostics import OK, STALE, WARN
@@ -56,6 +58,56 @@ def test_the_input_status_says_waiting_receiving_missed_and_stale() -> None:
     assert values["malformed messages"] == 1 and values["frames missed (gaps in the stamps)"] == 30
     level, message = status.status(4.0, router.counters, router.gaps, router.cfg, {})  # silent for 3 s > stale_after
     assert level == STALE and message.startswith("no messages for 3.0 s")
+
+
+def _missing_frames(load: FrameLoad | None, per_message: float = 0.0) -> tuple[int, str, dict[str, object]]:
+    """The input status after 300 frames of the fake rigs at 100 Hz, every 4th of the last 100 lost.
+
+    Each message received is timed at ``per_message`` seconds (with a load); ticks at 0 s and 3 s.
+    """
+    router, _ = _router()
+    status = InputStatus()
+    status.status(0.0, router.counters, router.gaps, router.cfg, {}, load=load)
+    rigs = make_rigs(0)
+    for k in range(300):
+        if k < 200 or k % 4 != 3:
+            router.markers(_raw(rigs, k))
+            if load is not None:
+                load.add(per_message)
+    values: dict[str, object] = {}
+    level, message = status.status(3.0, router.counters, router.gaps, router.cfg, values, load=load)
+    return level, message, values
+
+
+def test_frames_that_never_arrived_are_blamed_on_the_node_only_when_it_was_busy() -> None:
+    """9.5 ms per 10 ms frame: the node's; 0.2 ms: the network's or the driver's; not timed: either."""
+    level, message, values = _missing_frames(FrameLoad(), 0.0095)
+    assert level == WARN and "the node is not keeping up: a message takes it 9.50 ms (2 joints)" in message, message
+    assert "the stream sends one every 10.00 ms" in message and "give the joints to two nodes" in message
+    assert values["time per input message in the node (ms)"] == 9.5
+    assert values["node busy with input messages (%)"] == pytest.approx(100.0 * 275 * 0.0095 / 3.0, abs=0.05)
+    level, message, values = _missing_frames(FrameLoad(), 0.0002)
+    assert level == WARN and "the node had time for them (busy with messages 2 % of the time, 0.20 ms each)" in message
+    assert message.endswith("the network or the driver drops them"), message
+    level, message, values = _missing_frames(None)
+    assert level == WARN and message.endswith("the node is not keeping up, or the network or the driver drops them")
+    assert "node busy with input messages (%)" not in values
+
+
+def test_the_frame_load_is_the_recent_share_of_time_in_the_callbacks() -> None:
+    load = FrameLoad()
+    assert load.sample(0.0, 5.0) == (None, None)  # the first tick: nothing to compare with
+    for _ in range(100):
+        load.add(0.002)
+    per_frame, busy = load.sample(1.0, 5.0)
+    assert per_frame == pytest.approx(0.002) and busy == pytest.approx(0.2)
+    # no frame in the second second: the share over both (the ticks of the last 5 s)
+    assert load.sample(2.0, 5.0) == (pytest.approx(0.002), pytest.approx(0.1))
+    load.sample(3.0, 5.0)
+    for _ in range(10):
+        load.add(0.05)
+    per_frame, busy = load.sample(9.0, 5.0)  # ticks 0-2 left the last 5 s: from the tick at 3 s
+    assert per_frame == pytest.approx(0.05) and busy == pytest.approx(0.5 / 6.0)
 
 
 def test_freeze_and_save_name_every_joint(tmp_path: Path) -> None:

@@ -293,6 +293,10 @@ def test_frames_that_never_arrive_are_counted_and_warned(rig: tuple[_Client, Any
         client.status("input")
     )
     assert _level(client, "input") == WARN
+    # the node had time for every frame: it blames the way there, not itself (its input callbacks are timed)
+    status = client.status("input")
+    assert "the node had time for them" in status["message"] and "the network or the driver drops them" in status["message"]
+    assert float(status["node busy with input messages (%)"]) < 50.0 and float(status["time per input message in the node (ms)"]) > 0.0
     client.spin_until(lambda: False, 0.5)  # a status after the last frame
     missed = _count(client, "input", "frames missed (gaps in the stamps)") - missed_before
     # frames a loaded machine loses on its own (best effort) are missed too: the count must cover exactly those
