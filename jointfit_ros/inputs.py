@@ -259,7 +259,7 @@ class MessageRouter:
 
         Taken again only when the stream's measured frame period changes (windows in frames need it).
         """
-        period_ns = self.gaps.period_s * 1e9
+        period_ns = self.gaps.spacing_s * 1e9  # the frames the joints get (not the stream's, when most are lost)
         if period_ns != self._horizons[0]:
             windows = [(r.cfg.window, r.cfg.window_s, r.cfg.half_life_s) for r in self.marker_runners]
             self._horizons = (period_ns, window_horizon(windows, period_ns))
@@ -544,7 +544,7 @@ class MessageRouter:
             return []
         self.frame_id = self.frame_id or msg.frame_id
         values = np.concatenate([msg.position, msg.quaternion])
-        fresh = self.pose_repeats.fresh(topic, stamp_ns, values, t, self.gaps.period_s * 1e9)
+        fresh = self.pose_repeats.fresh(topic, stamp_ns, values, t, self.gaps.spacing_s * 1e9)
         self._count_repeats()
         out = []
         for k, (runner, source) in enumerate(pairs):
