@@ -193,8 +193,9 @@ def _whose(per_frame: float | None, busy: float | None, period_s: float, joints:
     if busy >= BUSY_LIMIT:
         return (
             f"the node is not keeping up: a message takes it {1e3 * per_frame:.2f} ms ({joints} joints) and the "
-            f"stream sends one every {1e3 * period_s:.2f} ms (busy {100.0 * busy:.0f} % of the time); give the "
-            "joints to two nodes on the same marker topic (each with part of them), or lower the capture rate"
+            f"stream sends one every {1e3 * period_s:.2f} ms (busy {100.0 * busy:.0f} % of the time); a node uses one "
+            "core: give part of the joints to a second node (its own name and parameter file) if a core is free, or "
+            "lower the capture rate"
         )
     return (
         f"the node had time for them (busy with messages {100.0 * busy:.0f} % of the time, {1e3 * per_frame:.2f} ms "

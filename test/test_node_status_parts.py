@@ -83,7 +83,7 @@ def test_frames_that_never_arrived_are_blamed_on_the_node_only_when_it_was_busy(
     """9.5 ms per 10 ms frame: the node's; 0.2 ms: the network's or the driver's; not timed: either."""
     level, message, values = _missing_frames(FrameLoad(), 0.0095)
     assert level == WARN and "the node is not keeping up: a message takes it 9.50 ms (2 joints)" in message, message
-    assert "the stream sends one every 10.00 ms" in message and "give the joints to two nodes" in message
+    assert "the stream sends one every 10.00 ms" in message and "give part of the joints to a second node" in message
     assert values["time per input message in the node (ms)"] == 9.5
     assert values["node busy with input messages (%)"] == pytest.approx(100.0 * 275 * 0.0095 / 3.0, abs=0.05)
     level, message, values = _missing_frames(FrameLoad(), 0.0002)
