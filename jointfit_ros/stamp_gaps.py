@@ -42,15 +42,19 @@ def base_period(diffs: list[int]) -> int:
     The median difference, unless the differences are whole multiples of a shorter period: then
     the largest ``p = low / k`` (``low`` their 5th percentile, ``k`` = 1 ... 16) of which at least
     :data:`BASE_SHARE` of them are whole multiples within :data:`BASE_TOLERANCE` periods, refined as the
-    median of ``d / round(d / p)`` over those. A regular stream with a few holes is ``k = 1``.
+    median of ``d / round(d / p)`` over those, and at least 1/16 of the median (a few differences far
+    below the others, two messages close together, give no period). A regular stream with a few holes
+    is ``k = 1``.
     """
     d = sorted(diffs)
     median = int(statistics.median(d))
     low = d[len(d) // 20]
     for k in range(1, _BASE_MAX_K + 1):
         p = low / k
+        if p * _BASE_MAX_K < median:  # (a period under 1/16 of the median: differences far below the others)
+            break
         steps = [x / p for x in d]
-        whole = [x / round(r) for x, r in zip(d, steps, strict=True) if abs(r - round(r)) <= BASE_TOLERANCE]
+        whole = [x / round(r) for x, r in zip(d, steps, strict=True) if r >= 0.5 and abs(r - round(r)) <= BASE_TOLERANCE]
         if len(whole) >= BASE_SHARE * len(d):
             return int(statistics.median(whole))
     return median

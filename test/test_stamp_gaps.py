@@ -83,5 +83,8 @@ def test_the_base_period_needs_nearly_all_differences_to_be_whole_multiples() ->
     assert base_period([2_000_000, 3_000_000] * 50) == 1_000_000
     assert base_period([3_000_000] * 100) == 3_000_000  # all one multiple: a 333 Hz stream as far as stamps tell
     assert base_period([1_000_000] * 90 + [2_000_000] * 10) == 1_000_000  # the usual: the median
+    # differences far below the others (two messages close together) are no multiple of anything
+    assert base_period([1, 5, 10_000] + [10_000_000] * 97) == 10_000_000
+    assert base_period([1] * 10 + [10_000_000] * 90) == 10_000_000
     rng = np.random.default_rng(3)
     assert base_period(rng.integers(2_000_000, 8_000_000, 200).tolist()) > 2_000_000  # no structure: no base
