@@ -50,6 +50,7 @@ from .joint_outliers import GateLimits, after_failure
 from .joint_segments import JointSegments
 from .joint_world import JointOutput, WorldOutput
 from .segment_pair import poses
+from .serial import NOMINAL_RATE_HZ
 from .template_stage import TemplateStage
 from .window_entries import WINDOW_MAX_FRAMES
 from .window_solve import SKIN_MIN_MOVEMENT_S, SolveRequest, SolveResult, solve_window
@@ -397,8 +398,8 @@ class OnlineJoint(JointSegments):
             if self._joint.broke:  # the relative pose changed for good: the window's frames are another joint's
                 self._joint_broke(frame_no)
             elif self._drift is not None and not self._frozen and self._drift.step(
-                self._generation, *self._joint.latest, ps.parent.W_unit, self._sigma[0] ** 2, self._solution,
-                self._joint.residual,
+                self._generation, frame_no / NOMINAL_RATE_HZ if stamp is None else stamp, *self._joint.latest,
+                ps.parent.W_unit, self._sigma[0] ** 2, self._solution, self._joint.residual,
             ):  # the recent frames disagree with the estimate for good (a cluster moved on its bone)
                 self.joint_drifts.append(frame_no)
                 JointEstimate.reset(self)  # the window's frames are of two placements: the next are the estimate's

@@ -16,7 +16,7 @@ from helpers import output_index
 from scipy.spatial.transform import Rotation
 
 from jointfit_core.estimator import OnlineJoint
-from jointfit_core.joint_misfit import DRIFT_FRAMES
+from jointfit_core.joint_misfit import DRIFT_FRAMES, DRIFT_RATE_HZ
 from jointfit_core.synthetic import TwoSegmentMotion, markers_from_poses, two_segment_motion
 from jointfit_ros.joint_diagnostics import DRIFT_TEXT
 
@@ -31,11 +31,14 @@ def _bumped(motion: TwoSegmentMotion, shift_mm: float, seed: int) -> TwoSegmentM
 
 def _run(
     kind: str, shift_mm: float, seed: int, seconds: float = 50.0, attachment: str = "rigid",
-    markers: tuple[np.ndarray, np.ndarray] | None = None,
+    markers: tuple[np.ndarray, np.ndarray] | None = None, rate: float = RATE,
 ) -> tuple[OnlineJoint, dict[str, list[float]]]:
-    """The rig with its parent plate moved ``shift_mm`` at BUMP_S: e/k of the outputs before, in the 10 s after, and later."""
+    """The rig with its parent plate moved ``shift_mm`` at BUMP_S: e/k of the outputs before, in the 10 s after, and later.
+
+    Solved every 0.1 s; a window of 3000 frames at RATE, else of 30 s.
+    """
     motion = two_segment_motion(np.random.default_rng(seed), kind=kind, offset=(2500.0, 3000.0, 900.0))
-    t = np.arange(round(seconds * RATE)) / RATE
+    t = np.arange(round(seconds * rate)) / rate
     if markers is None:
         yp1, yc1 = motion.markers_at(t)
         yp2, yc2 = _bumped(motion, shift_mm, seed).markers_at(t)
@@ -47,11 +50,11 @@ def _run(
     yp = (yp + rng.normal(0.0, 0.5, yp.shape)) * 1e-3
     yc = (yc + rng.normal(0.0, 0.5, yc.shape)) * 1e-3
     centre = motion.centre_world_at(t) * 1e-3
-    est = OnlineJoint(kind, window=3000, attachment=attachment)
+    est = OnlineJoint(kind, attachment=attachment, **({"window": 3000} if rate == RATE else {"window_s": 30.0}))
     e: dict[str, list[float]] = {"before": [], "after": [], "later": [], "frames": []}
     for k in range(t.size):
         out = est.update(yp[k], yc[k], float(t[k]))
-        if k % 10 == 0:
+        if k % round(rate / 10.0) == 0:
             try:
                 est.estimate()
             except ValueError:
@@ -84,6 +87,18 @@ def test_a_bumped_plate_restarts_the_window_within_two_seconds(kind: str, shift:
     assert round(50.0 * RATE) - est.joint_drifts[0] - since.size <= 50  # outputs withheld after the restart
 
 
+def test_a_bumped_plate_at_1khz_restarts_the_window_as_many_seconds_after_as_at_100_hz() -> None:
+    rate = 1000.0
+    est, e = _run("ball", 10.0, 0, rate=rate)
+    bump = round(BUMP_S * rate)
+    frames_per_mean = round(DRIFT_FRAMES * rate / DRIFT_RATE_HZ)
+    assert len(est.joint_drifts) == 1 and bump < est.joint_drifts[0] <= bump + 2 * frames_per_mean, est.joint_drifts
+    assert est.dropped["recent_frames_disagree"] == frames_per_mean  # held for 1 s, until a second mean confirmed it
+    frames = np.asarray(e["frames"])
+    ek = np.concatenate([e["before"], e["after"], e["later"]])
+    assert float(np.mean(ek[frames > est.joint_drifts[0]])) < 1.5 and float(np.mean(e["before"])) < 1.5
+
+
 @pytest.mark.parametrize("kind", ["ball", "hinge"])
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_an_untouched_rig_never_drifts(kind: str, seed: int) -> None:
@@ -92,15 +107,18 @@ def test_an_untouched_rig_never_drifts(kind: str, seed: int) -> None:
     assert "recent_frames_disagree" not in est.dropped
 
 
-def test_a_joint_that_is_not_quite_a_hinge_is_not_taken_for_a_bump() -> None:
+@pytest.mark.parametrize("rate", [RATE, 1000.0])
+def test_a_joint_that_is_not_quite_a_hinge_is_not_taken_for_a_bump(rate: float) -> None:
     """A knee with 10 deg of screw-home rotation near full extension, rigid markers: no drift.
 
     Its residual follows the angle, so its recent mean reads up to ~70 against the estimate whenever the
     limb dwells where the hinge model errs; without the past blocks' comparison (DRIFT_OVER_PAST) the
-    window restarted every few seconds.
+    window restarted every few seconds. At 1 kHz it did (21-25 restarts a minute, ~8 % of the outputs held)
+    while the check counted frames: its 30 past blocks were 3 s. It now takes at most DRIFT_RATE_HZ frames a
+    second, so its spans are the same seconds at any rate.
     """
     motion = two_segment_motion(np.random.default_rng(0), kind="hinge", offset=(2500.0, 3000.0, 900.0))
-    t = np.arange(round(50.0 * RATE)) / RATE
+    t = np.arange(round(50.0 * rate)) / rate
     R_p, d_p, R_c, _ = motion.poses_at(t)
     wave = np.sin(2.0 * np.pi * motion.freq * t[:, None] + motion.phase)
     flexion = 30.0 + 50.0 * wave[:, 6]  # deg, as the rig's hinge angle
@@ -111,7 +129,7 @@ def test_a_joint_that_is_not_quite_a_hinge_is_not_taken_for_a_bump() -> None:
     joint = np.einsum("nij,j->ni", R_p, motion.centre_parent) + d_p
     d_c = joint - np.einsum("nij,j->ni", R_c, motion.centre_child)
     markers = markers_from_poses((R_p, d_p, R_c, d_c), motion.template_parent, motion.template_child)
-    est, _ = _run("hinge", 0.0, 0, markers=markers)
+    est, _ = _run("hinge", 0.0, 0, markers=markers, rate=rate)
     assert est.joint_drifts == [] and "recent_frames_disagree" not in est.dropped
     assert est._drift is not None and est._drift.ratio > 3.0 * 2  # (its recent mean did read far beyond the limit)
 
