@@ -387,7 +387,8 @@ class OnlineJoint(JointSegments):
             if verdict is not None:  # labels put right or markers held out, and the frame judged again
                 return after_failure(self, missing, ps, verdict, stamp, frame_no, refit, relabelled)
         if ps.parent is not None and ps.child is not None and self._joint.residual is not None:
-            if not self._joint.check_one(R, d, frame_no, self._frozen):  # the joint test (jointfit_core.joint_gate)
+            time = frame_no / NOMINAL_RATE_HZ if stamp is None else stamp
+            if not self._joint.check_one(R, d, frame_no, self._frozen, time):  # the joint test (jointfit_core.joint_gate)
                 self.joint_gated_frames += 1
                 self._drop("joint_gated")
                 if self.gate_log is not None:
@@ -398,7 +399,7 @@ class OnlineJoint(JointSegments):
             if self._joint.broke:  # the relative pose changed for good: the window's frames are another joint's
                 self._joint_broke(frame_no)
             elif self._drift is not None and not self._frozen and self._drift.step(
-                self._generation, frame_no / NOMINAL_RATE_HZ if stamp is None else stamp, *self._joint.latest,
+                self._generation, time, *self._joint.latest,
                 ps.parent.W_unit, self._sigma[0] ** 2, self._solution, self._joint.residual,
             ):  # the recent frames disagree with the estimate for good (a cluster moved on its bone)
                 self.joint_drifts.append(frame_no)

@@ -84,6 +84,7 @@ from .segments import PoseSumsCentre
 
 __all__ = [
     "JOINT_BREAK_FRAMES",
+    "JOINT_BREAK_S",
     "JOINT_GATE_MIN_SCORES",
     "JOINT_GATE_RELOCK_FRAMES",
     "JOINT_STEP_RMS",
@@ -102,6 +103,11 @@ JOINT_GATE_RELOCK_FRAMES = 25
 #: have broken for good (a skin cluster posed from 3 markers for 14 frames stepped the hip's joint residual by
 #: 55 mm, then came back).
 JOINT_BREAK_FRAMES = 100
+#: ... and more than this many seconds after its first failure, so that a faster stream is not called broken
+#: sooner: at 1 kHz, a parent plate mis-tracked 80 mm for 0.3 s (held out at 100 Hz) was a joint broken for
+#: good, its window restarted on the wrong state and the WARN kept. (Under JOINT_BREAK_FRAMES' 1 s at 100 Hz, so
+#: that at 100 Hz and below the frame count decides, as before.)
+JOINT_BREAK_S = 0.9
 #: Joint test: while frames fail, a frame whose joint residual is within this many times the estimate's rms
 #: residual of the last passed frame's has come back (a step within the joint's usual scatter is no break):
 #: standing still, the normal frame-to-frame change (and so the limit) is tiny, and the real hip's 1.2 mm
@@ -179,6 +185,7 @@ class JointTrack:
         #: The joint broke for good at the last frame passed (a relock, or failures until the references
         #: expired and the frame still off them, see the module notes); the estimator clears it.
         self.broke = False
+        self._failing_since = math.nan  # the time of the first of the failures in a row (check_one)
 
     @property
     def armed(self) -> bool:
@@ -263,7 +270,7 @@ class JointTrack:
         """The last passed frame's relative pose ``[Q | t]`` (3, 4) and its joint residual under :attr:`residual`."""
         return self.z_ref[0], self.e_ref[0]
 
-    def check_one(self, R: FloatArray, d: FloatArray, number: int, frozen: bool) -> bool:
+    def check_one(self, R: FloatArray, d: FloatArray, number: int, frozen: bool, time: float = math.nan) -> bool:
         """The test of one frame (the per-frame path): whether it passes (then it is kept as :meth:`pass_one` keeps it).
 
         Parameters
@@ -274,6 +281,9 @@ class JointTrack:
             Its frame number.
         frozen : bool
             Whether the joint is frozen (:meth:`pass_one`).
+        time : float, optional
+            Its time (s; the stamp): a joint still off is broken for good only :data:`JOINT_BREAK_S` after
+            its first failure too (NaN: frames only).
         """
         z = np.empty((3, 4))  # the child's pose relative to the parent's, [Q | t]
         Rp_t = R[0].T
@@ -282,12 +292,15 @@ class JointTrack:
         score, e = self.score_one(z, number)
         if score != score and self.fails_in_row and e is not None and self._still_off(e):
             # the references expired while it failed, and it is still off them: held out until it comes back, or
-            # until it has stayed off for JOINT_BREAK_FRAMES frames (then it broke for good: the new state is taken)
-            if number - int(self.ref_frame[0]) <= JOINT_BREAK_FRAMES:
+            # until it has stayed off for JOINT_BREAK_FRAMES frames and JOINT_BREAK_S seconds (then it broke for
+            # good: the new state is taken)
+            if number - int(self.ref_frame[0]) <= JOINT_BREAK_FRAMES or time - self._failing_since <= JOINT_BREAK_S:
                 self.fails_in_row += 1
                 return False
             self.broke = True
         elif self.fails(score):
+            if self.fails_in_row == 1:
+                self._failing_since = time
             return False
         if self.fails_in_row:  # back after failures: its score is no frame-to-frame change for the normal score
             score = float("nan")

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from jointfit_core.estimator import OnlineJoint
 from jointfit_core.gate import GATE_JUMP_GAP_CAP
-from jointfit_core.joint_gate import JOINT_BREAK_FRAMES
+from jointfit_core.joint_gate import JOINT_BREAK_FRAMES, JOINT_BREAK_S
 from jointfit_core.skeleton_sta import skeleton_skin_frames, sta_amplitudes
 from jointfit_core.skeleton_truth import make_skeleton
 from jointfit_core.synthetic import two_segment_motion
@@ -36,11 +36,11 @@ STEP = 1200
 NOISE = 0.3
 
 
-def _rig(seed: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+def _rig(seed: int, rate: float = RATE, n: int = N) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Times, parent and child markers (noisy), the true centre, and the child markers moved on the bone (same noise)."""
     rng = np.random.default_rng(seed)
     motion = two_segment_motion(rng, kind="ball")
-    t = np.arange(N) / RATE
+    t = np.arange(n) / rate
     yp, yc = motion.markers_at(t)
     noise = rng.normal(0.0, NOISE, yc.shape)
     # the child cluster turned 12 deg about its centroid and shifted 30 mm on its bone (the joint stays)
@@ -110,6 +110,19 @@ def test_a_glitch_is_held_out_and_the_joint_does_not_break(frames: int) -> None:
     assert est.joint_breaks == [] and est.dropped["joint_gated"] >= min(frames, GATE_JUMP_GAP_CAP - 1)
     a, b = clean.estimate(), est.estimate()
     assert np.linalg.norm(a.centre_parent - b.centre_parent) < 0.5  # type: ignore[union-attr]
+
+
+def test_at_1khz_a_glitch_of_a_third_of_a_second_is_held_out_and_a_lasting_move_breaks_after_a_second() -> None:
+    """Until 2026-12-07 the break came JOINT_BREAK_FRAMES frames after the reference, 0.1 s at 1 kHz: a cluster
+    back in place after 0.3 s (held out at 100 Hz) was a joint broken for good, its window restarted on the
+    wrong state, and the WARN stayed. Now it also waits JOINT_BREAK_S seconds."""
+    rate, n, at = 1000.0, 40_000, 20_000
+    t, yp, yc, _, yc_moved = _rig(4, rate, n)
+    glitch, _ = _run(t, yp, _moved(yc, yc_moved, slice(at, at + 300)), False)
+    assert glitch.joint_breaks == [] and glitch.dropped["joint_gated"] == 300
+    moved, _ = _run(t, yp, _moved(yc, yc_moved, slice(at, None)), False)
+    assert len(moved.joint_breaks) == 1
+    assert JOINT_BREAK_S * rate < moved.joint_breaks[0] - at <= JOINT_BREAK_S * rate + 2, moved.joint_breaks
 
 
 def test_blocks_find_the_break_where_frames_do() -> None:
