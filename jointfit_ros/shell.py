@@ -322,6 +322,27 @@ class StatusRounds:
             return [] if self.heard else ["any jointfit node"]
         return [node for node in self.nodes if node not in self.first]
 
+    def silence(self, timeout: float, domain: str) -> str:
+        """The line for nodes not heard within ``timeout`` s: not running, or running and silent (a busy node).
+
+        A named node that publishes ``/diagnostics`` in the ROS graph (:meth:`note_graph`) is running: on a
+        busy machine its messages reach a new subscriber late (a 12-joint node at 1 kHz beside the mocap
+        stream on 2 cores, 2026-12-07: it published every 1 s, the first message reached a new subscriber
+        after ~10 s, and ``--once`` said "is the node running?").
+        """
+        missing = self.missing()
+        running = [node for node in missing if node in self.publishers]
+        if running:
+            return (
+                f"jointfit status: {', '.join(running)} is running (it publishes /diagnostics) but none reached this "
+                f"command within {timeout:g} s: on a busy machine (a node that cannot keep up with its input, the "
+                "mocap driver) they arrive later; --timeout 30 waits longer"
+            )
+        return (
+            f"jointfit status: no /diagnostics from {', '.join(missing)} within {timeout:g} s (is the node running, "
+            f"with the same ROS_DOMAIN_ID={domain}?)"
+        )
+
     def text(self, node: str, lines: Sequence[str]) -> str:
         """A node's round as printed: its lines, each after the node's full name when several are watched."""
         return "\n".join(f"{node} {line}" if self.many else line for line in lines)
@@ -375,11 +396,9 @@ def status_main(argv: Sequence[str]) -> int:
     try:
         waited = session.spin_until(round_done if opts.once else lambda: bool(rounds.pending), timeout)
         if not rounds.first or (opts.once and not waited and not opts.all):
-            print(
-                f"jointfit status: no /diagnostics from {', '.join(rounds.missing())} within {timeout:g} s (is the "
-                f"node running, with the same ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?)",
-                file=sys.stderr,
-            )
+            infos = session.node.get_publishers_info_by_topic("/diagnostics")
+            rounds.note_graph([node_path(f"{i.node_namespace.rstrip('/')}/{i.node_name}") for i in infos], time.monotonic())
+            print(rounds.silence(float(timeout or 0.0), os.environ.get("ROS_DOMAIN_ID", "0")), file=sys.stderr)
             return 1
         if opts.once:
             print("\n".join(rounds.text(node, rounds.first[node]) for node in rounds.nodes), flush=True)

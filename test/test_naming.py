@@ -146,6 +146,19 @@ def test_status_rounds_once_waits_for_every_named_node_and_names_them() -> None:
     assert late.complete(now=10.0)
 
 
+def test_a_silent_node_in_the_graph_is_called_running_and_maybe_busy_not_absent() -> None:
+    """``--once`` at a 12-joint node busy 97 % of its time at 1 kHz said "is the node running?" (2026-12-07): its
+    /diagnostics reached a new subscriber only after ~10 s on the loaded machine."""
+    rounds = StatusRounds(["/jointfit"])
+    assert "(is the node running, with the same ROS_DOMAIN_ID=7?)" in rounds.silence(5.0, "7")
+    rounds.note_graph(["/fake_mocap"], now=0.0)
+    assert "is the node running" in rounds.silence(5.0, "7")
+    rounds.note_graph(["/fake_mocap", "/jointfit"], now=1.0)
+    text = rounds.silence(5.0, "7")
+    assert text.startswith("jointfit status: /jointfit is running (it publishes /diagnostics) but none reached this")
+    assert "within 5 s: on a busy machine" in text and "--timeout 30" in text
+
+
 def test_status_rounds_every_node_waits_for_each_diagnostics_publisher_in_the_graph() -> None:
     a, b = _statuses("/subject_a/jointfit", 0), _statuses("/subject_b/jointfit", 1)
     every = StatusRounds(None)
