@@ -77,6 +77,7 @@ from jointfit_core.node_calibration import (
     segment_key,
 )
 from jointfit_core.urdf import urdf_from_calibrations
+from jointfit_core.window_entries import check_window_max_frames
 
 from .angles_export import joint_angles_csv
 from .export import EXPORT_FORMATS, check_exportable, export_files
@@ -398,7 +399,7 @@ def fit_main(argv: Sequence[str]) -> int:
                 # is the configured one, not the fit's no-forgetting sums.
                 data.update(dict.fromkeys(("window", "window_s", "half_life", "half_life_s")))
                 data.update(configured[joint["name"]].window_kwargs())
-                data["window_max_frames"] = configured[joint["name"]].window_max_frames or None
+                data["window_max_frames"] = check_window_max_frames(configured[joint["name"]].window_max_frames)
                 calibrations[joint["name"]] = data
         for joint in summary["joints"]:
             name = joint["name"]

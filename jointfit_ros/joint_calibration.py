@@ -33,6 +33,7 @@ from jointfit_core.calibration import load_calibration, save_calibration
 from jointfit_core.errors import InputError
 from jointfit_core.estimator import OnlineJoint
 from jointfit_core.lever import rms_radius
+from jointfit_core.window_entries import check_window_max_frames
 
 from .params import JointConfig, calibration_path
 
@@ -76,7 +77,7 @@ def _settings_differences(data: dict[str, Any], cfg: JointConfig) -> list[str]:
     if "attachment" in data:  # saved since the soft-tissue part exists
         configured["attachment"] = [cfg.attachment, cfg.attachment]
     if "window_max_frames" in data and cfg.window_s > 0.0:  # saved since it exists; it bounds time windows only
-        configured["window_max_frames"] = cfg.window_max_frames or None
+        configured["window_max_frames"] = check_window_max_frames(cfg.window_max_frames)
     notes = []
     for key, value in configured.items():
         saved = data.get(key)

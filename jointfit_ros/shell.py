@@ -348,6 +348,12 @@ class StatusRounds:
         return "\n".join(f"{node} {line}" if self.many else line for line in lines)
 
 
+def _diagnostics_publishers(node: Any) -> list[str]:
+    """The full names of the nodes that publish ``/diagnostics`` in the ROS graph, as ``node`` sees it."""
+    infos = node.get_publishers_info_by_topic("/diagnostics")
+    return [node_path(f"{i.node_namespace.rstrip('/')}/{i.node_name}") for i in infos]
+
+
 def _status_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="jointfit status",
@@ -388,16 +394,14 @@ def status_main(argv: Sequence[str]) -> int:
     def round_done() -> bool:
         now = time.monotonic()
         if rounds.every:
-            infos = session.node.get_publishers_info_by_topic("/diagnostics")
-            rounds.note_graph([node_path(f"{i.node_namespace.rstrip('/')}/{i.node_name}") for i in infos], now)
+            rounds.note_graph(_diagnostics_publishers(session.node), now)
             rounds.publishers.pop(me, None)
         return rounds.complete(now)
 
     try:
         waited = session.spin_until(round_done if opts.once else lambda: bool(rounds.pending), timeout)
         if not rounds.first or (opts.once and not waited and not opts.all):
-            infos = session.node.get_publishers_info_by_topic("/diagnostics")
-            rounds.note_graph([node_path(f"{i.node_namespace.rstrip('/')}/{i.node_name}") for i in infos], time.monotonic())
+            rounds.note_graph(_diagnostics_publishers(session.node), time.monotonic())
             print(rounds.silence(float(timeout or 0.0), os.environ.get("ROS_DOMAIN_ID", "0")), file=sys.stderr)
             return 1
         if opts.once:
